@@ -1,0 +1,53 @@
+"""The unit of exchange between stages and the engine."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Artifact:
+    """Output of one stage for one image.
+
+    Parameters
+    ----------
+    arrays : dict of str to numpy.ndarray
+        Dense numeric data; the engine persists each entry as one zarr array.
+    data : dict
+        Small structured, JSON-serialisable data (lists, numbers, strings, nested dicts).
+    """
+
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
+
+    def nbytes(self) -> int:
+        """Total size of the arrays in bytes."""
+        return int(sum(a.nbytes for a in self.arrays.values()))
+
+
+def pack_ragged(parts: list[np.ndarray], dtype=None) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenate variable-length arrays into ``(flat, offsets)``.
+
+    ``parts[k] == flat[offsets[k]:offsets[k + 1]]``; ``offsets`` has ``len(parts) + 1`` entries.
+    """
+    lengths = np.array([len(p) for p in parts], dtype=np.int64)
+    offsets = np.zeros(len(parts) + 1, dtype=np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    if parts:
+        flat = np.concatenate([np.asarray(p) for p in parts])
+    else:
+        flat = np.zeros((0,), dtype=dtype or np.float64)
+    if dtype is not None:
+        flat = flat.astype(dtype, copy=False)
+    return flat, offsets
+
+
+def unpack_ragged(flat: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
+    """Inverse of :func:`pack_ragged`."""
+    return [flat[offsets[k]:offsets[k + 1]] for k in range(len(offsets) - 1)]
