@@ -1,0 +1,108 @@
+"""Stage registry: what each stage is called, what it reads, and where its code lives.
+
+The DAG of one image (DESIGN.md)::
+
+    prep ─┬─► keypoints ─────────────────┐
+          └─► field ─► graph ─► topology ◄┘
+                         │         │
+                         └──────► flow ─► select ─► export
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from functools import lru_cache
+from types import ModuleType
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """Declaration of one stage.
+
+    Attributes
+    ----------
+    name : str
+        Stage name; also its config group and the folder of its artifacts.
+    module : str
+        Import path of the module exposing ``STAGE_VERSION`` and ``run``.
+    inputs : tuple of str
+        Upstream stages whose artifacts ``run`` receives as keyword arguments.
+    persists : str
+        What the artifact holds, for ``polyvec-inspect``.
+    """
+
+    name: str
+    module: str
+    inputs: tuple[str, ...]
+    persists: str
+
+    def load(self) -> ModuleType:
+        """Import the stage module."""
+        return _import(self.module)
+
+    @property
+    def version(self) -> str:
+        """The stage's ``STAGE_VERSION``."""
+        return str(self.load().STAGE_VERSION)
+
+
+STAGES: tuple[StageSpec, ...] = (
+    StageSpec("prep", "stages.prep", (), "zarr: grey, mask"),
+    StageSpec("keypoints", "stages.keypoints", ("prep",), "zarr: 4 heatmaps; JSON: typed points"),
+    StageSpec("field", "stages.field", ("prep",), "zarr: c0, c2, roots, singular cells, extension"),
+    StageSpec("graph", "stages.graph", ("prep", "field"), "zarr: vertices, edges, streamlines"),
+    StageSpec("topology", "stages.topology", ("prep", "field", "graph", "keypoints"),
+              "JSON: candidate paths; zarr: pixel coverage"),
+    StageSpec("flow", "stages.flow", ("prep", "field", "graph", "topology"), "zarr: flowed polylines; JSON: energies"),
+    StageSpec("select", "stages.select", ("prep", "topology", "flow"), "JSON: chosen curves"),
+    StageSpec("export", "stages.export", ("prep", "topology", "flow", "select"), "SVG + curves JSON"),
+)
+
+BY_NAME = {s.name: s for s in STAGES}
+
+
+@lru_cache(maxsize=None)
+def _import(module: str) -> ModuleType:
+    return importlib.import_module(module)
+
+
+def is_implemented(spec: StageSpec) -> bool:
+    """Whether the stage's module exists and exposes ``run`` and ``STAGE_VERSION``."""
+    try:
+        mod = spec.load()
+    except ModuleNotFoundError as exc:
+        if exc.name and spec.module.startswith(exc.name):
+            return False
+        raise
+    return hasattr(mod, "run") and hasattr(mod, "STAGE_VERSION")
+
+
+def active_stages(until: str | None = None) -> list[StageSpec]:
+    """Stages to run, in topological order.
+
+    A stage runs when it is implemented, all its inputs run, and it is not downstream of ``until``.
+
+    Parameters
+    ----------
+    until : str, optional
+        Last stage wanted: only it and its ancestors run.
+    """
+    wanted = set(BY_NAME)
+    if until:
+        if until not in BY_NAME:
+            raise ValueError(f"unknown stage {until!r}; stages: {', '.join(BY_NAME)}")
+        wanted = set()
+        todo = [until]
+        while todo:
+            name = todo.pop()
+            if name not in wanted:
+                wanted.add(name)
+                todo.extend(BY_NAME[name].inputs)
+    out: list[StageSpec] = []
+    have: set[str] = set()
+    for spec in STAGES:
+        if spec.name in wanted and all(i in have for i in spec.inputs) and is_implemented(spec):
+            out.append(spec)
+            have.add(spec.name)
+    return out

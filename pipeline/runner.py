@@ -1,0 +1,362 @@
+"""Batch runner: one dask task per (image, stage), skipping every task whose artifact is stored.
+
+All keys are computed up front in the driver (they depend only on the image bytes and the config),
+so cached stages never reach the scheduler. Workers load their inputs from the store, run the stage,
+write the artifact and hand back only a small :class:`TaskResult`. A failing image records its error
+and its downstream tasks are skipped; the other images carry on.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import socket
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from pipeline.registry import BY_NAME, StageSpec, active_stages
+from pipeline.store import ArtifactStore, artifact_key, hash_bytes, library_versions
+
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
+
+
+@dataclass(frozen=True)
+class Task:
+    """One (image, stage) unit of work."""
+
+    image: str
+    image_key: str
+    stage: str
+    version: str
+    key: str
+    inputs: dict[str, str]
+    config: dict
+
+
+@dataclass
+class TaskResult:
+    """What a worker hands back: status and key, never the artifact itself."""
+
+    image: str
+    stage: str
+    key: str
+    status: str  # computed | cached | failed | skipped
+    error: str | None = None
+    detail: str | None = None
+    duration_s: float = 0.0
+
+
+@dataclass
+class BatchResult:
+    """Outcome of a batch: per image, per stage."""
+
+    results: dict[str, dict[str, TaskResult]] = field(default_factory=dict)
+    stages: list[str] = field(default_factory=list)
+    outputs: dict[str, list[str]] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+    @property
+    def failed_images(self) -> dict[str, str]:
+        """Image → first error line, for images with a failed stage."""
+        out = {}
+        for image, per_stage in self.results.items():
+            for stage in self.stages:
+                r = per_stage.get(stage)
+                if r is not None and r.status == "failed":
+                    out[image] = f"{stage}: {r.error}"
+                    break
+        return out
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Stage → status → count."""
+        table: dict[str, dict[str, int]] = {s: {} for s in self.stages}
+        for per_stage in self.results.values():
+            for stage, r in per_stage.items():
+                table[stage][r.status] = table[stage].get(r.status, 0) + 1
+        return table
+
+    def keys(self, image: str) -> dict[str, str]:
+        """Stage → key of the stored artifacts of one image."""
+        return {s: r.key for s, r in self.results.get(image, {}).items() if r.status in ("computed", "cached")}
+
+
+# -- planning ----------------------------------------------------------------------------------
+def stage_config(cfg: Any, stage: str) -> dict:
+    """The plain-dict config section of a stage (empty when the group has no file)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    section = cfg.get(stage) if hasattr(cfg, "get") else None
+    if section is None:
+        return {}
+    if isinstance(section, DictConfig):
+        return OmegaConf.to_container(section, resolve=True)
+    return dict(section)
+
+
+def plan(images: Iterable[str | Path], cfg: Any, stages: list[StageSpec]) -> list[list[Task]]:
+    """Tasks of every image, in topological order, with their content-addressed keys."""
+    out = []
+    configs = {s.name: stage_config(cfg, s.name) for s in stages}
+    for image in images:
+        image = str(image)
+        try:
+            image_key = hash_bytes(Path(image).read_bytes())
+        except OSError as exc:
+            image_key = "unreadable-" + hash_bytes(f"{image}:{exc}".encode())
+        keys = {"image": image_key}
+        tasks = []
+        for s in stages:
+            inputs = {"image": image_key} if not s.inputs else {i: keys[i] for i in s.inputs}
+            keys[s.name] = artifact_key(s.name, s.version, configs[s.name], inputs)
+            tasks.append(Task(image, image_key, s.name, s.version, keys[s.name], inputs, configs[s.name]))
+        out.append(tasks)
+    return out
+
+
+# -- execution (runs inside workers) -----------------------------------------------------------
+_STORES: dict[str, ArtifactStore] = {}
+
+
+def _store(url: str) -> ArtifactStore:
+    if url not in _STORES:
+        _STORES[url] = ArtifactStore(url)
+    return _STORES[url]
+
+
+def _pin_threads() -> None:
+    for k, v in THREAD_ENV.items():
+        os.environ.setdefault(k, v)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
+def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
+    """Run one task in a worker: load inputs, run the stage, store the artifact."""
+    from stages.errors import InputError
+
+    for up in upstream:
+        if up.status in ("failed", "skipped"):
+            return TaskResult(task.image, task.stage, task.key, "skipped", error=f"upstream {up.stage} failed")
+    store = _store(store_url)
+    if store.exists(task.stage, task.key):
+        return TaskResult(task.image, task.stage, task.key, "cached")
+    _pin_threads()
+    t0 = time.perf_counter()
+    try:
+        spec = BY_NAME[task.stage]
+        module = spec.load()
+        if task.stage == "prep":
+            try:
+                data = Path(task.image).read_bytes()
+            except IsADirectoryError:
+                raise InputError("is a directory, not an image") from None
+            except OSError as exc:
+                raise InputError(f"cannot read file ({exc.strerror or exc})") from None
+            kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
+        else:
+            kwargs = {name: store.load(name, key) for name, key in task.inputs.items()}
+        artifact = module.run(dict(task.config), **kwargs)
+        duration = time.perf_counter() - t0
+        manifest = {
+            "stage": task.stage, "version": task.version, "key": task.key, "config": task.config,
+            "inputs": task.inputs, "image": task.image_key, "image_name": Path(task.image).name,
+            "image_path": str(Path(task.image).resolve()), "duration_s": round(duration, 4),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "host": socket.gethostname(), "pid": os.getpid(), "libraries": library_versions(),
+            "python": sys.version.split()[0],
+        }
+        store.save(task.stage, task.key, artifact, manifest)
+        return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration)
+    except InputError as exc:
+        return TaskResult(task.image, task.stage, task.key, "failed", error=str(exc),
+                          duration_s=time.perf_counter() - t0)
+    except MemoryError:
+        return TaskResult(task.image, task.stage, task.key, "failed", error="out of memory",
+                          duration_s=time.perf_counter() - t0)
+    except Exception as exc:  # noqa: BLE001 - one bad image must not sink the batch
+        return TaskResult(task.image, task.stage, task.key, "failed",
+                          error=f"internal error in stage {task.stage}: {type(exc).__name__}: {exc}",
+                          detail=traceback.format_exc(), duration_s=time.perf_counter() - t0)
+
+
+# -- schedulers --------------------------------------------------------------------------------
+_CLIENT: Any = None
+_CLIENT_SPEC: tuple | None = None
+
+
+def get_client(runtime: dict):
+    """A dask.distributed client: a local cluster of single-threaded processes, or a remote scheduler.
+
+    The client is kept for the life of the process, so Hydra multirun jobs share one cluster.
+    """
+    global _CLIENT, _CLIENT_SPEC
+    from distributed import Client, LocalCluster
+
+    address = runtime.get("scheduler_address")
+    spec = (address, runtime.get("workers"), runtime.get("memory_limit"))
+    if _CLIENT is not None and _CLIENT_SPEC == spec and _CLIENT.status == "running":
+        return _CLIENT
+    close_client()
+    if address:
+        client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+    else:
+        for k, v in THREAD_ENV.items():
+            os.environ.setdefault(k, v)
+        cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
+                               dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
+                               env=dict(THREAD_ENV), silence_logs=50)
+        client = Client(cluster)
+    _CLIENT, _CLIENT_SPEC = client, spec
+    return client
+
+
+def close_client() -> None:
+    """Shut the cached client (and its local cluster) down."""
+    global _CLIENT, _CLIENT_SPEC
+    if _CLIENT is not None:
+        cluster = getattr(_CLIENT, "cluster", None)
+        try:
+            _CLIENT.close()
+            if cluster is not None:
+                cluster.close()
+        except Exception:  # noqa: BLE001 - best effort at shutdown
+            pass
+    _CLIENT, _CLIENT_SPEC = None, None
+
+
+def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResult], None] | None = None,
+              store: ArtifactStore | None = None) -> BatchResult:
+    """Run the stage DAG over images through the content-addressed store.
+
+    Parameters
+    ----------
+    images : list of path
+        Image files.
+    cfg : DictConfig or dict
+        The full config (stage sections, ``store.path``, ``runtime``).
+    on_result : callable, optional
+        Called in the driver with every :class:`TaskResult` as it arrives (progress display).
+    store : ArtifactStore, optional
+        Defaults to ``ArtifactStore(cfg.store.path)``.
+
+    Returns
+    -------
+    BatchResult
+    """
+    runtime = stage_config(cfg, "runtime")
+    store = store or ArtifactStore(cfg["store"]["path"])
+    store.sweep_tmp()
+    stages = active_stages(runtime.get("until"))
+    t0 = time.perf_counter()
+    batch = BatchResult(stages=[s.name for s in stages])
+    plans = plan(images, cfg, stages)
+    report = on_result or (lambda r: None)
+
+    pending: list[list[Task]] = []
+    for tasks in plans:
+        image = tasks[0].image if tasks else None
+        per = batch.results.setdefault(image, {})
+        todo_final = []
+        for t in tasks:
+            # A stored artifact is a hit even when an upstream one was evicted from the store.
+            if store.exists(t.stage, t.key):
+                per[t.stage] = TaskResult(t.image, t.stage, t.key, "cached")
+                report(per[t.stage])
+            else:
+                todo_final.append(t)
+        if todo_final:
+            pending.append(todo_final)
+
+    if pending:
+        if runtime.get("cluster", "local") == "sync":
+            _run_sync(pending, store.url, batch, report)
+        else:
+            _run_dask(pending, store.url, batch, report, get_client(runtime))
+    batch.wall_s = time.perf_counter() - t0
+    return batch
+
+
+def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
+    spec = BY_NAME[t.stage]
+    return [done[i] for i in spec.inputs if i in done and done[i].status != "cached"]
+
+
+def _run_sync(pending, store_url, batch, report) -> None:
+    for tasks in pending:
+        per = batch.results[tasks[0].image]
+        for t in tasks:
+            r = execute(t, store_url, *_needed(t, per))
+            per[t.stage] = r
+            report(r)
+
+
+def _run_dask(pending, store_url, batch, report, client) -> None:
+    from distributed import as_completed
+
+    futures = {}
+    for i, tasks in enumerate(pending):
+        image = tasks[0].image
+        per_future: dict[str, Any] = {}
+        per = batch.results[image]
+        for t in tasks:
+            deps = [per_future[s] for s in BY_NAME[t.stage].inputs if s in per_future]
+            fut = client.submit(execute, t, store_url, *deps, key=f"{t.stage}-{i}-{t.key[:16]}", pure=False,
+                                retries=0)
+            per_future[t.stage] = fut
+            futures[fut] = t
+    for fut in as_completed(list(futures)):
+        t = futures[fut]
+        try:
+            r = fut.result()
+        except Exception as exc:  # a worker died (segfault, OOM kill): record and carry on
+            r = TaskResult(t.image, t.stage, t.key, "failed", error=f"worker lost: {type(exc).__name__}: {exc}")
+        batch.results[t.image][t.stage] = r
+        report(r)
+
+
+# -- outputs -----------------------------------------------------------------------------------
+def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Path) -> dict[str, list[str]]:
+    """Write ``<stem>.svg`` and ``<stem>.json`` of every image whose export artifact exists."""
+    output_dir = Path(output_dir)
+    written: dict[str, list[str]] = {}
+    used: set[str] = set()
+    for image, per in batch.results.items():
+        r = per.get("export")
+        if r is None or r.status not in ("computed", "cached"):
+            continue
+        art = store.load("export", r.key)
+        stem = Path(image).stem
+        name, n = stem, 1
+        while name in used:
+            n += 1
+            name = f"{stem}-{n}"
+        used.add(name)
+        output_dir.mkdir(parents=True, exist_ok=True)
+        files = []
+        svg = output_dir / f"{name}.svg"
+        _atomic_write(svg, art.data["svg"])
+        files.append(str(svg))
+        payload = {k: v for k, v in art.data.items() if k not in ("svg", "bezier_svg")}
+        payload.update(source=str(image), artifact=r.key)
+        js = output_dir / f"{name}.json"
+        _atomic_write(js, json.dumps(payload, indent=1))
+        files.append(str(js))
+        if art.data.get("bezier_svg"):
+            bz = output_dir / f"{name}.bezier.svg"
+            _atomic_write(bz, art.data["bezier_svg"])
+            files.append(str(bz))
+        written[image] = files
+    batch.outputs = written
+    return written
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)

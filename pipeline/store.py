@@ -1,0 +1,210 @@
+"""Content-addressed artifact store: zarr arrays + JSON data + a manifest per artifact.
+
+Layout under the store root::
+
+    <stage>/<key[:2]>/<key>/arrays.zarr     one zarr v3 group, one array per artifact array
+    <stage>/<key[:2]>/<key>/data.json       the artifact's small structured data
+    <stage>/<key[:2]>/<key>/manifest.json   stage, version, config, inputs, timings, library versions
+    .tmp/<uuid>/                            artifacts being written
+
+An artifact is written completely into ``.tmp/<uuid>`` and then renamed into place. A rename of a
+directory is atomic on a local file system, so a reader either sees the whole artifact or nothing: a
+run killed half-way (Ctrl-C, ``kill -9``) leaves only an orphan under ``.tmp`` that is never read and
+is swept at the next run. On an fsspec URL (``memory://``, ``s3://`` …) the manifest is written last
+and an artifact only counts as present when its manifest is, which gives the same guarantee for
+readers that go through this class.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from stages.artifact import Artifact
+
+MANIFEST = "manifest.json"
+DATA = "data.json"
+ARRAYS = "arrays.zarr"
+
+
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON text (sorted keys, no whitespace) used for hashing."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def hash_bytes(data: bytes) -> str:
+    """Key of an input image: SHA-256 of its bytes (first 32 hex digits)."""
+    return hashlib.sha256(data).hexdigest()[:32]
+
+
+def artifact_key(stage: str, version: str, config: Any, inputs: dict[str, str]) -> str:
+    """Key of a stage artifact: hash of stage name, version, its config section and input keys."""
+    payload = canonical_json({"stage": stage, "version": version, "config": config, "inputs": inputs})
+    return hashlib.sha256(payload.encode()).hexdigest()[:32]
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries whose behaviour can change results."""
+    import importlib.metadata as md
+
+    out = {}
+    for name in ("numpy", "scipy", "torch", "scikit-image", "networkx", "pulp", "zarr", "numba"):
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            pass
+    return out
+
+
+class ArtifactStore:
+    """A content-addressed store on a local path or an fsspec URL.
+
+    Parameters
+    ----------
+    root : str or Path
+        Local directory, or a URL such as ``memory://polyvec`` or ``s3://bucket/prefix``.
+    """
+
+    def __init__(self, root: str | os.PathLike):
+        import fsspec
+
+        root = str(root)
+        self.url = root
+        self.fs, path = fsspec.core.url_to_fs(root)
+        self.local = self.fs.protocol in ("file", ("file", "local")) or "file" in np.atleast_1d(self.fs.protocol)
+        self.root = os.path.abspath(path) if self.local else path.rstrip("/")
+        self.fs.makedirs(self.root, exist_ok=True)
+
+    # -- paths ---------------------------------------------------------------------------------
+    def _join(self, *parts: str) -> str:
+        return os.path.join(self.root, *parts) if self.local else "/".join([self.root, *parts])
+
+    def path_for(self, stage: str, key: str) -> str:
+        """Directory (or URL path) of an artifact."""
+        return self._join(stage, key[:2], key)
+
+    def exists(self, stage: str, key: str) -> bool:
+        """Whether a complete artifact is stored under this key."""
+        return self.fs.exists(self._join(stage, key[:2], key, MANIFEST))
+
+    # -- writing -------------------------------------------------------------------------------
+    def save(self, stage: str, key: str, artifact: Artifact, manifest: dict) -> None:
+        """Write an artifact atomically (temporary directory, then rename into place)."""
+        final = self.path_for(stage, key)
+        if self.exists(stage, key):
+            return
+        tmp = self._join(".tmp", uuid.uuid4().hex)
+        self.fs.makedirs(tmp, exist_ok=True)
+        try:
+            self._write_arrays(tmp, artifact.arrays)
+            with self.fs.open(f"{tmp}/{DATA}", "w") as f:
+                json.dump(artifact.data, f, default=_json_default)
+            manifest = dict(manifest, arrays={k: {"shape": list(v.shape), "dtype": str(v.dtype)}
+                                              for k, v in artifact.arrays.items()},
+                            nbytes=artifact.nbytes(), written_at=time.time())
+            with self.fs.open(f"{tmp}/{MANIFEST}", "w") as f:
+                json.dump(manifest, f, indent=1, default=_json_default)
+            self.fs.makedirs(self._join(stage, key[:2]), exist_ok=True)
+            if self.local:
+                try:
+                    os.rename(tmp, final)
+                except OSError:
+                    # Another worker finished the same key first: identical content, keep theirs.
+                    if not self.exists(stage, key):
+                        raise
+            else:
+                self.fs.mv(tmp, final, recursive=True)
+        finally:
+            if self.fs.exists(tmp):
+                self.fs.rm(tmp, recursive=True)
+
+    def _write_arrays(self, path: str, arrays: dict[str, np.ndarray]) -> None:
+        import zarr
+
+        group = zarr.open_group(self._zarr_store(f"{path}/{ARRAYS}", read_only=False), mode="w")
+        for name, value in arrays.items():
+            a = np.ascontiguousarray(value)
+            chunks = tuple(max(1, s) for s in a.shape)
+            group.create_array(name, shape=a.shape, dtype=a.dtype, chunks=chunks)[...] = a
+
+    def _zarr_store(self, path: str, read_only: bool):
+        if self.local:
+            return path
+        from zarr.storage import FsspecStore
+
+        protocol = self.fs.protocol if isinstance(self.fs.protocol, str) else self.fs.protocol[0]
+        return FsspecStore.from_url(f"{protocol}://{path}", read_only=read_only)
+
+    # -- reading -------------------------------------------------------------------------------
+    def load(self, stage: str, key: str) -> Artifact:
+        """Read an artifact; raises ``KeyError`` when it is not (completely) stored."""
+        import zarr
+
+        if not self.exists(stage, key):
+            raise KeyError(f"{stage}/{key} is not in the store {self.url}")
+        path = self.path_for(stage, key)
+        with self.fs.open(f"{path}/{DATA}", "r") as f:
+            data = json.load(f)
+        arrays = {}
+        manifest = self.manifest(stage, key)
+        if manifest.get("arrays"):
+            group = zarr.open_group(self._zarr_store(f"{path}/{ARRAYS}", read_only=True), mode="r")
+            for name in manifest["arrays"]:
+                arrays[name] = group[name][...]
+        return Artifact(arrays=arrays, data=data)
+
+    def manifest(self, stage: str, key: str) -> dict:
+        """The manifest of a stored artifact."""
+        with self.fs.open(self._join(stage, key[:2], key, MANIFEST), "r") as f:
+            return json.load(f)
+
+    def iter_manifests(self) -> Iterator[tuple[str, str, dict]]:
+        """Yield ``(stage, key, manifest)`` for every stored artifact."""
+        for path in self.fs.glob(self._join("*", "*", "*", MANIFEST)):
+            parts = str(path).rstrip("/").split("/")
+            stage, key = parts[-4], parts[-2]
+            if stage.startswith("."):
+                continue
+            try:
+                with self.fs.open(path, "r") as f:
+                    yield stage, key, json.load(f)
+            except (OSError, json.JSONDecodeError):
+                continue
+
+    def size_bytes(self, stage: str, key: str) -> int:
+        """Bytes on disk of one artifact."""
+        return int(sum(self.fs.du(self.path_for(stage, key), total=False).values()))
+
+    def sweep_tmp(self, older_than_s: float = 3600.0) -> int:
+        """Remove abandoned temporary directories (from killed runs) older than ``older_than_s``."""
+        tmp = self._join(".tmp")
+        if not self.local or not os.path.isdir(tmp):
+            return 0
+        n = 0
+        now = time.time()
+        for entry in os.scandir(tmp):
+            try:
+                if now - entry.stat().st_mtime > older_than_s:
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    n += 1
+            except OSError:
+                pass
+        return n
