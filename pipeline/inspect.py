@@ -1,0 +1,133 @@
+"""``polyvec-inspect``: look inside the artifact store.
+
+Examples
+--------
+``polyvec-inspect list``                          images in the store
+``polyvec-inspect list drawing.png``              artifacts of one image (stage, key, size, time, config)
+``polyvec-inspect show graph 3fa2``               one manifest (key prefixes are enough)
+``polyvec-inspect render drawing.png field -o field.png``   an artifact drawn over the drawing
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from pipeline.registry import STAGES
+from pipeline.store import ArtifactStore, hash_bytes
+
+STAGE_ORDER = {s.name: i for i, s in enumerate(STAGES)}
+
+
+def artifacts_of(store: ArtifactStore, image: str) -> list[tuple[str, str, dict]]:
+    """``(stage, key, manifest)`` of every artifact made from ``image`` (a path), newest last."""
+    image_key = hash_bytes(Path(image).read_bytes())
+    found = [(s, k, m) for s, k, m in store.iter_manifests() if m.get("image") == image_key]
+    return sorted(found, key=lambda t: (STAGE_ORDER.get(t[0], 99), t[2].get("written_at", 0)))
+
+
+def resolve(store: ArtifactStore, stage: str, key_prefix: str | None, image: str | None) -> str:
+    """Full key of an artifact from a key prefix, or the newest one of ``image`` for ``stage``."""
+    if image is not None and not key_prefix:
+        keys = [k for s, k, _ in artifacts_of(store, image) if s == stage]
+        if not keys:
+            raise LookupError(f"no {stage} artifact for {image} in {store.url}")
+        return keys[-1]
+    keys = [k for s, k, _ in store.iter_manifests() if s == stage and k.startswith(key_prefix or "")]
+    if not keys:
+        raise LookupError(f"no {stage} artifact with key {key_prefix}* in {store.url}")
+    if len(keys) > 1:
+        raise LookupError(f"key prefix {key_prefix} is ambiguous: {', '.join(k[:12] for k in keys)}")
+    return keys[0]
+
+
+def _short_config(cfg: dict, width: int = 60) -> str:
+    text = json.dumps(cfg, sort_keys=True, separators=(",", ":"))
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def cmd_list(store: ArtifactStore, image: str | None, console) -> int:
+    from rich.table import Table
+
+    if image is None:
+        images: dict[str, dict] = {}
+        for stage, key, m in store.iter_manifests():
+            d = images.setdefault(m.get("image", "?"), {"name": m.get("image_name", "?"), "n": 0, "stages": set()})
+            d["n"] += 1
+            d["stages"].add(stage)
+        table = Table(title=f"store {store.url}: {len(images)} image(s)")
+        for col in ("image key", "name", "artifacts", "stages"):
+            table.add_column(col)
+        for k, d in sorted(images.items(), key=lambda t: t[1]["name"]):
+            stages = ", ".join(sorted(d["stages"], key=lambda s: STAGE_ORDER.get(s, 99)))
+            table.add_row(k[:12], d["name"], str(d["n"]), stages)
+        console.print(table)
+        return 0
+    rows = artifacts_of(store, image)
+    if not rows:
+        console.print(f"nothing stored for {image} in {store.url}")
+        return 1
+    table = Table(title=f"{image}: {len(rows)} artifact(s) in {store.url}")
+    for col in ("stage", "key", "version", "size", "seconds", "peak MB", "config"):
+        table.add_column(col)
+    for stage, key, m in rows:
+        size = store.size_bytes(stage, key)
+        table.add_row(stage, key[:12], str(m.get("version")), f"{size / 1024:.0f} KB",
+                      f"{m.get('duration_s', 0):.2f}", str(m.get("peak_rss_mb", "")), _short_config(m.get("config", {})))
+    console.print(table)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point."""
+    from rich.console import Console
+
+    parser = argparse.ArgumentParser(prog="polyvec-inspect", description="Inspect the polyvec artifact store.")
+    parser.add_argument("--store", default="artifacts", help="store path or fsspec URL (default: artifacts)")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("list", help="images in the store, or the artifacts of one image")
+    p.add_argument("image", nargs="?")
+    p = sub.add_parser("show", help="print one artifact's manifest and data summary")
+    p.add_argument("stage", choices=[s.name for s in STAGES])
+    p.add_argument("key", nargs="?", help="key or key prefix")
+    p.add_argument("--image", help="take the newest artifact of this image")
+    p = sub.add_parser("render", help="draw an artifact over its drawing into a PNG")
+    p.add_argument("image", help="the input image (its newest artifact is drawn) ")
+    p.add_argument("stage", choices=[s.name for s in STAGES])
+    p.add_argument("--key", help="key prefix, to pick one of several artifacts")
+    p.add_argument("-o", "--out", help="PNG path (default: <image stem>.<stage>.png)")
+    p.add_argument("--scale", type=int, default=2)
+    args = parser.parse_args(argv)
+    console = Console()
+    store = ArtifactStore(args.store)
+    try:
+        if args.cmd == "list":
+            return cmd_list(store, args.image, console)
+        if args.cmd == "show":
+            key = resolve(store, args.stage, args.key, args.image)
+            manifest = store.manifest(args.stage, key)
+            console.print_json(json.dumps(manifest))
+            data = store.load(args.stage, key).data
+            summary = {k: (f"list[{len(v)}]" if isinstance(v, list) else v) for k, v in data.items()
+                       if not isinstance(v, str) or len(v) < 200}
+            console.print_json(json.dumps(summary, default=str))
+            return 0
+        key = resolve(store, args.stage, args.key, args.image)
+        from PIL import Image
+
+        from pipeline.render import render_artifact
+
+        rgb = render_artifact(store, args.stage, key, scale=args.scale)
+        out = Path(args.out or f"{Path(args.image).stem}.{args.stage}.png")
+        Image.fromarray(rgb).save(out)
+        console.print(f"wrote {out}")
+        return 0
+    except (LookupError, OSError) as exc:
+        print(f"polyvec-inspect: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
