@@ -22,6 +22,7 @@ from pipeline.store import ArtifactStore
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp"}
 EXAMPLE_NAME = "polyvec-example.png"
+REPO_CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 class UsageError(Exception):

@@ -1,0 +1,124 @@
+"""The stage DAG through the store: cache hits, partial recomputation, failures, dask clusters."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from pipeline.registry import active_stages
+from pipeline.runner import close_client, run_batch
+from stages import synthetic
+
+
+@pytest.fixture
+def images(tmp_path):
+    paths = []
+    for name, d in (("line", synthetic.line(size=40, width=3)), ("vee", synthetic.vee(size=48, width=3))):
+        p = tmp_path / f"{name}.png"
+        p.write_bytes(d.png_bytes())
+        paths.append(p)
+    return paths
+
+
+def _statuses(batch):
+    return {stage: sorted(r.status for per in batch.results.values() for s, r in per.items() if s == stage)
+            for stage in batch.stages}
+
+
+def test_second_identical_run_computes_nothing(tmp_path, images, compose_cfg):
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=field")
+    first = run_batch(images, cfg)
+    assert first.stages == ["prep", "field"]
+    assert all(st == ["computed", "computed"] for st in _statuses(first).values())
+    second = run_batch(images, cfg)
+    assert all(st == ["cached", "cached"] for st in _statuses(second).values())
+    assert first.keys(str(images[0])) == second.keys(str(images[0]))
+
+
+def test_field_parameter_recomputes_field_not_prep(tmp_path, images, compose_cfg):
+    store = f"store.path={tmp_path / 'store'}"
+    run_batch(images, compose_cfg(store, "runtime.cluster=sync", "runtime.until=field"))
+    changed = run_batch(images, compose_cfg(store, "runtime.cluster=sync", "runtime.until=field", "field.beta=12"))
+    st = _statuses(changed)
+    assert st["prep"] == ["cached", "cached"]
+    assert st["field"] == ["computed", "computed"]
+
+
+def test_bad_image_does_not_stop_the_batch(tmp_path, images, compose_cfg):
+    bad = tmp_path / "corrupt.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=field")
+    batch = run_batch([images[0], bad, images[1]], cfg)
+    assert list(batch.failed_images) == [str(bad)]
+    assert batch.results[str(bad)]["field"].status == "skipped"
+    assert batch.results[str(images[1])]["field"].status == "computed"
+
+
+def test_local_dask_cluster(tmp_path, images, compose_cfg):
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field")
+    try:
+        batch = run_batch(images, cfg)
+    finally:
+        close_client()
+    assert not batch.failed_images
+    assert _statuses(batch)["field"] == ["computed", "computed"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_existing_scheduler_and_worker_processes(tmp_path, images, compose_cfg):
+    """runtime.scheduler_address joins a dask scheduler and worker started as separate processes."""
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    bin_dir = [sys.executable, "-m"]
+    sched = subprocess.Popen(bin_dir + ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
+                                        str(port), "--no-dashboard"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    worker = subprocess.Popen(bin_dir + ["distributed.cli.dask_worker", addr, "--nthreads", "1", "--no-dashboard",
+                                         "--name", "polyvec-test-worker"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field",
+                          f"runtime.scheduler_address={addr}")
+        deadline = time.time() + 60
+        from distributed import Client
+
+        while True:  # wait for the worker to register
+            try:
+                with Client(addr, timeout=5) as c:
+                    if c.scheduler_info()["workers"]:
+                        break
+            except OSError:
+                pass
+            if time.time() > deadline:
+                pytest.fail("dask scheduler/worker did not come up")
+            time.sleep(0.5)
+        batch = run_batch(images, cfg)
+        assert not batch.failed_images
+        assert _statuses(batch)["field"] == ["computed", "computed"]
+        from pipeline.store import ArtifactStore
+
+        manifest = ArtifactStore(tmp_path / "store").manifest("field", batch.keys(str(images[0]))["field"])
+        assert manifest["pid"] != os.getpid()  # computed by the external worker
+    finally:
+        close_client()
+        worker.terminate()
+        sched.terminate()
+        worker.wait(20)
+        sched.wait(20)
+
+
+def test_until_and_unknown_stage():
+    assert [s.name for s in active_stages("field")] == ["prep", "field"]
+    with pytest.raises(ValueError, match="unknown stage"):
+        active_stages("nonsense")

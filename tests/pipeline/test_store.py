@@ -1,0 +1,97 @@
+"""Artifact store: content keys, round trips, atomic writes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from pipeline.store import ArtifactStore, artifact_key
+from stages.artifact import Artifact, pack_ragged, unpack_ragged
+
+
+def _artifact():
+    return Artifact(arrays={"c": np.arange(12, dtype=np.complex64).reshape(3, 4), "m": np.eye(3, dtype=bool),
+                            "empty": np.zeros((0, 2))}, data={"n": 3, "names": ["a", "b"]})
+
+
+def test_key_depends_on_stage_version_config_and_inputs():
+    base = artifact_key("field", "1", {"beta": 10}, {"prep": "abc"})
+    assert base == artifact_key("field", "1", {"beta": 10}, {"prep": "abc"})
+    assert base != artifact_key("field", "2", {"beta": 10}, {"prep": "abc"})
+    assert base != artifact_key("field", "1", {"beta": 11}, {"prep": "abc"})
+    assert base != artifact_key("field", "1", {"beta": 10}, {"prep": "abd"})
+    assert base != artifact_key("graph", "1", {"beta": 10}, {"prep": "abc"})
+    # canonical form: key order in the config does not matter
+    assert artifact_key("s", "1", {"a": 1, "b": 2}, {}) == artifact_key("s", "1", {"b": 2, "a": 1}, {})
+
+
+@pytest.mark.parametrize("url", ["local", "memory://polyvec-test"])
+def test_round_trip(tmp_path, url):
+    store = ArtifactStore(tmp_path / "store" if url == "local" else url)
+    art = _artifact()
+    assert not store.exists("field", "k1")
+    store.save("field", "k1", art, {"stage": "field"})
+    assert store.exists("field", "k1")
+    back = store.load("field", "k1")
+    for name, value in art.arrays.items():
+        assert back[name].dtype == value.dtype
+        np.testing.assert_array_equal(back[name], value)
+    assert back.data == art.data
+    assert store.manifest("field", "k1")["arrays"]["c"]["dtype"] == "complex64"
+    assert [(s, k) for s, k, _ in store.iter_manifests()] == [("field", "k1")]
+
+
+def test_failed_write_leaves_nothing_readable(tmp_path, monkeypatch):
+    store = ArtifactStore(tmp_path)
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("json.dump", boom)
+    with pytest.raises(RuntimeError):
+        store.save("graph", "k2", _artifact(), {"stage": "graph"})
+    monkeypatch.undo()
+    assert not store.exists("graph", "k2")
+    with pytest.raises(KeyError):
+        store.load("graph", "k2")
+    assert not os.listdir(tmp_path / ".tmp")
+
+
+def test_killed_writer_leaves_nothing_readable(tmp_path):
+    """kill -9 in the middle of a write: the artifact is absent, the next write succeeds."""
+    code = textwrap.dedent(f"""
+        import os, signal, numpy as np
+        from pipeline.store import ArtifactStore
+        from stages.artifact import Artifact
+        store = ArtifactStore({str(tmp_path)!r})
+        real = ArtifactStore._write_arrays
+        def half(self, path, arrays):
+            real(self, path, dict(list(arrays.items())[:1]))   # half the arrays are on disk ...
+            os.kill(os.getpid(), signal.SIGKILL)               # ... when the process dies
+        ArtifactStore._write_arrays = half
+        store.save("flow", "k3", Artifact({{"a": np.ones(10), "b": np.zeros(10)}}, {{"x": 1}}), {{}})
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True)
+    assert proc.returncode == -signal.SIGKILL
+    store = ArtifactStore(tmp_path)
+    assert os.listdir(tmp_path / ".tmp"), "the half-written artifact should be an orphan under .tmp"
+    assert not store.exists("flow", "k3")
+    with pytest.raises(KeyError):
+        store.load("flow", "k3")
+    assert store.sweep_tmp(older_than_s=0) == 1
+    store.save("flow", "k3", _artifact(), {})
+    assert store.load("flow", "k3").data["n"] == 3
+
+
+def test_ragged_round_trip():
+    parts = [np.zeros((3, 2)), np.ones((0, 2)), np.full((2, 2), 5.0)]
+    flat, off = pack_ragged(parts)
+    assert off.tolist() == [0, 3, 3, 5]
+    for a, b in zip(parts, unpack_ragged(flat, off)):
+        np.testing.assert_array_equal(a, b)

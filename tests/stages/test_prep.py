@@ -1,0 +1,106 @@
+"""prep: every input kind decodes to the same drawing; every bad input is one clear error."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from pipeline.cli import REPO_CONF
+from stages import prep, synthetic
+from stages.errors import InputError
+
+CFG = yaml.safe_load((REPO_CONF / "prep" / "default.yaml").read_text())
+
+
+def _encode(img: Image.Image, fmt: str, **kw) -> bytes:
+    buf = io.BytesIO()
+    img.save(buf, fmt, **kw)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def drawing():
+    return synthetic.line(size=48, angle=30, width=4)
+
+
+def _variants(grey: np.ndarray) -> dict[str, bytes]:
+    g8 = np.round(grey * 255).astype(np.uint8)
+    ink = 255 - g8
+    rgba = np.zeros(grey.shape + (4,), np.uint8)  # black strokes on a transparent background
+    rgba[..., 3] = ink
+    g16 = (grey.astype(np.float64) * 65535).round().astype(np.uint16)
+    return {
+        "png-grey": _encode(Image.fromarray(g8, "L"), "PNG"),
+        "png-rgb": _encode(Image.fromarray(np.stack([g8] * 3, -1), "RGB"), "PNG"),
+        "png-palette": _encode(Image.fromarray(g8, "L").convert("P"), "PNG"),
+        "png-rgba": _encode(Image.fromarray(rgba, "RGBA"), "PNG"),
+        "png-grey-alpha": _encode(Image.fromarray(np.stack([np.zeros_like(g8), ink], -1), "LA"), "PNG"),
+        "png-16bit": _encode(Image.fromarray(g16), "PNG"),
+        "tiff-16bit": _encode(Image.fromarray(g16), "TIFF"),
+        "tiff-8bit": _encode(Image.fromarray(g8, "L"), "TIFF"),
+        "jpeg": _encode(Image.fromarray(g8, "L"), "JPEG", quality=95),
+        "bmp": _encode(Image.fromarray(np.stack([g8] * 3, -1), "RGB"), "BMP"),
+    }
+
+
+@pytest.mark.parametrize("kind", list(_variants(np.ones((2, 2), np.float32))))
+def test_every_input_kind_gives_the_same_band(drawing, kind):
+    data = _variants(drawing.grey)[kind]
+    ref = prep.run(CFG, _variants(drawing.grey)["png-grey"])
+    out = prep.run(CFG, data)
+    assert out["grey"].dtype == np.float32 and out["grey"].shape == drawing.grey.shape
+    assert out["mask"].dtype == bool
+    # Same ink everywhere (JPEG may move an edge pixel or two).
+    assert np.sum(out["mask"] != ref["mask"]) <= (6 if kind == "jpeg" else 0)
+    assert out["mask"].sum() > 100
+
+
+def test_alpha_is_composited_over_white(drawing):
+    out = prep.run(CFG, _variants(drawing.grey)["png-rgba"])
+    assert out["grey"][0, 0] == pytest.approx(1.0)  # transparent corner reads as paper
+    assert out.data["mode"] == "RGBA"
+
+
+def test_faint_pencil_is_stretched_to_the_same_band(drawing):
+    faint = 1 - 0.3 * (1 - drawing.grey)  # light grey strokes, never darker than 0.7
+    ref = prep.run(CFG, _variants(drawing.grey)["png-grey"])
+    out = prep.run(CFG, _variants(faint)["png-grey"])
+    assert np.sum(out["mask"] != ref["mask"]) <= 4
+
+
+def test_pinhole_is_repaired_and_real_hole_kept():
+    grey = np.ones((40, 40), np.float32)
+    grey[10:30, 10:30] = 0.0
+    grey[20, 20] = 1.0  # pinhole inside a blob
+    grey[14:18, 22:27] = 1.0  # real hole (20 pixels)
+    mask = prep.narrow_band(grey, CFG["threshold"], 3, 6, 1)
+    assert mask[20, 20]
+    assert not mask[15, 24]
+
+
+@pytest.mark.parametrize("data, message", [
+    (b"", "empty file"),
+    (b"this is not an image at all", "not an image"),
+    (b"\x89PNG\r\n\x1a\n" + b"\x00" * 40, "image"),
+])
+def test_bad_bytes_give_one_clear_error(data, message):
+    with pytest.raises(InputError, match=message) as info:
+        prep.run(CFG, data)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("value, message", [(255, "blank"), (0, "ink")])
+def test_all_white_and_all_black(value, message):
+    data = _encode(Image.fromarray(np.full((32, 32), value, np.uint8), "L"), "PNG")
+    with pytest.raises(InputError, match=message):
+        prep.run(CFG, data)
+
+
+def test_huge_image_is_refused_before_decoding():
+    data = _encode(Image.fromarray(np.full((400, 500), 255, np.uint8), "L"), "PNG")
+    with pytest.raises(InputError, match="too large"):
+        prep.run(dict(CFG, max_pixels=100_000), data)
