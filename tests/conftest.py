@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,6 +19,19 @@ def shared_path(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"{p} not available (../shared is absent)")
     return p
+
+
+def run_cli(*args: str, cwd: Path, module: str = "pipeline.cli") -> subprocess.CompletedProcess:
+    """Run a polyvec command line (``python -m module args``) in a subprocess, as a user would."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
+                          env=env, timeout=900)
+
+
+@pytest.fixture
+def cli():
+    """The :func:`run_cli` helper."""
+    return run_cli
 
 
 @pytest.fixture
