@@ -73,7 +73,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from stages.artifact import Artifact
 from stages.errors import InputError
@@ -241,20 +240,43 @@ def _region_index(region: np.ndarray) -> np.ndarray:
 
 
 def _conjugate_gradient(a: sp.spmatrix, b: np.ndarray, x0: np.ndarray | None, rtol: float,
-                        maxiter: int) -> tuple[np.ndarray, int, int]:
-    """Jacobi-preconditioned CG; returns (x, iterations, scipy info)."""
+                        maxiter: int) -> tuple[np.ndarray, int, bool]:
+    """Jacobi-preconditioned conjugate gradients for a Hermitian PSD sparse system.
+
+    Hand-written rather than ``scipy.sparse.linalg.cg`` because scipy's complex inner products go
+    through ``np.dot(x.conj(), y)``, which with this numpy/OpenBLAS build costs ~10 ms per call on a
+    40k vector (``np.vdot``: 6 µs) and made the solve 20× slower.  Stops when
+    ``‖b − A x‖ ≤ rtol · ‖b‖``.  Zero diagonal entries (rows without any term) get a preconditioner
+    of 1; their unknowns keep the start value.
+
+    Returns
+    -------
+    x, iterations, converged
+    """
     diag = a.diagonal().real
     inv = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0)
-    precond = spla.LinearOperator(a.shape, matvec=lambda r: inv * r, dtype=a.dtype)
-    count = [0]
-
-    def _tick(_):
-        count[0] += 1
-
-    if not np.any(b) and (x0 is None or not np.any(x0)):
-        return np.zeros_like(b), 0, 0
-    x, info = spla.cg(a, b, x0=x0, rtol=rtol, atol=0.0, maxiter=maxiter, M=precond, callback=_tick)
-    return x, count[0], int(info)
+    x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=b.dtype, copy=True)
+    bnorm = float(np.sqrt(np.vdot(b, b).real))
+    if bnorm == 0.0:
+        return np.zeros_like(b), 0, True
+    r = b - a @ x if x0 is not None else b.copy()
+    z = inv * r
+    p = z.copy()
+    rz = np.vdot(r, z).real
+    stop = rtol * bnorm
+    for k in range(maxiter):
+        if np.sqrt(np.vdot(r, r).real) <= stop:
+            return x, k, True
+        ap = a @ p
+        step = rz / np.vdot(p, ap).real
+        x += step * p
+        r -= step * ap
+        z = inv * r
+        rz_new = np.vdot(r, z).real
+        p *= rz_new / rz
+        p += z
+        rz = rz_new
+    return x, maxiter, bool(np.sqrt(np.vdot(r, r).real) <= stop)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -337,14 +359,17 @@ def singular_cells(roots: np.ndarray, mask: np.ndarray) -> np.ndarray:
         bool (H − 1, W − 1).
     """
     h, w = mask.shape
+    out = np.zeros((max(h - 1, 0), max(w - 1, 0)), dtype=bool)
     if h < 2 or w < 2:
-        return np.zeros((max(h - 1, 0), max(w - 1, 0)), dtype=bool)
-    r00, r01 = roots[:-1, :-1], roots[:-1, 1:]
-    r11, r10 = roots[1:, 1:], roots[1:, :-1]
+        return out
+    full = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
+    ci, cj = np.nonzero(full)  # only cells inside the band are tested
+    r00, r01 = roots[ci, cj], roots[ci, cj + 1]
+    r11, r10 = roots[ci + 1, cj + 1], roots[ci + 1, cj]
     parity = (root_matching(r00, r01).astype(np.int8) + root_matching(r01, r11)
               + root_matching(r11, r10) + root_matching(r10, r00)) % 2
-    full = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
-    return (parity == 1) & full
+    out[ci[parity == 1], cj[parity == 1]] = True
+    return out
 
 
 def singular_pixels(cells: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -445,7 +470,7 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
     index = _region_index(mask)
     n = int(mask.sum())
     tau_b = tau[mask]
-    stats: dict = {"unknowns": 2 * n, "band_pixels": n, "cg_iterations": [], "cg_info": [],
+    stats: dict = {"unknowns": 2 * n, "band_pixels": n, "cg_iterations": [], "cg_converged": [],
                    "singular_pixels": [], "nonzeros": []}
     c0 = np.zeros((h, w), np.complex128)
     c2 = np.zeros((h, w), np.complex128)
@@ -461,11 +486,11 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
             x0 = x if (cfg.warm_start and x is not None) else None
             x, iters, info = _conjugate_gradient(a, rhs, x0, cfg.cg_rtol, maxiter)
             stats["cg_iterations"].append(iters)
-            stats["cg_info"].append(info)
+            stats["cg_converged"].append(info)
             stats["nonzeros"].append(int(a.nnz))
             c0[mask], c2[mask] = x[:n], x[n:]
-            roots = polyvector_roots(c0, c2)
-            roots[~mask] = 0
+            roots = np.zeros((h, w, 2), np.complex128)
+            roots[mask] = polyvector_roots(x[:n], x[n:])
             singular = singular_pixels(singular_cells(roots, mask), (h, w))
             count = int(singular.sum())
             stats["singular_pixels"].append(count)
