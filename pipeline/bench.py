@@ -1,0 +1,541 @@
+"""``polyvec-bench``: run the pipeline over folders of cases and score it (shared/reference/metrics.md).
+
+Examples
+--------
+``polyvec-bench bench.cases=[../shared/data/realvec_dev] bench.out=bench_out``
+``polyvec-bench bench.cases=[../shared/data/realvec_dev,../shared/data/drawings] bench.limit=10``
+``polyvec-bench bench.cases=[scans/] flow.lam=0.1 bench.run_pipeline=false``  (score the store only)
+
+Cases
+-----
+- **Ground-truth case**: ``<name>.png`` with ``<name>.json`` holding ``strokes`` (polylines, x right,
+  y down, pixels), ``width``, ``style`` and optionally ``endpoints``, ``junctions``, ``corners`` (the
+  realvec_dev format). Scored against the strokes (raster metrics, topology F1), the keypoints, and
+  for fidelity to the input.
+- **Plain image** (no such JSON): fidelity to the binarised input and topology counts only.
+
+Every image runs through :func:`pipeline.runner.run_batch` (the same store and cache as ``polyvec``);
+whatever stages exist are scored: without an ``export`` stage, the curves come from ``select`` +
+``flow``; without those, only keypoints and timings are reported.
+
+Writes into ``bench.out``: ``cases.json`` and ``cases.csv`` (one row per case), ``summary.json``
+(medians, means, failures, per group), ``report.html`` with ``img/<case>.png`` (worst cases first),
+and prints the summary tables. Exit status: 0, or 1 when any case failed, 2 on a usage error.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import math
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.runner import BatchResult, TaskResult, plan, run_batch
+from pipeline.store import ArtifactStore
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp"}
+KEYPOINT_CLASSES = {"endpoints": 1, "junctions": 3, "corners": 5}
+
+
+class UsageError(Exception):
+    """A problem with the command line, reported as one line."""
+
+
+@dataclass
+class Case:
+    """One image to score.
+
+    Attributes
+    ----------
+    name : str
+        Path of the image relative to the folder it was found in, without suffix.
+    image : Path
+    dataset : str
+        Name of the folder given on the command line.
+    style : str
+        ``style`` of the case JSON, else the image's sub-folder (clean / rough / scanned ...).
+    width : float or None
+        Stroke width of the drawing in pixels (ground-truth cases).
+    strokes : list of numpy.ndarray or None
+        Ground-truth strokes (x, y); None for a plain image.
+    keypoints : dict or None
+        Class code (1, 3, 5) → (k, 2) ground-truth keypoints (x, y).
+    """
+
+    name: str
+    image: Path
+    dataset: str
+    style: str
+    width: float | None = None
+    strokes: list[np.ndarray] | None = None
+    keypoints: dict[int, np.ndarray] | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def group(self) -> str:
+        return f"{self.dataset}:{self.style}" if self.style else self.dataset
+
+
+# -- cases -------------------------------------------------------------------------------------
+def _case_json(image: Path) -> dict | None:
+    js = image.with_suffix(".json")
+    if not js.is_file():
+        return None
+    try:
+        d = json.loads(js.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return d if isinstance(d, dict) and isinstance(d.get("strokes"), list) else None
+
+
+def load_case(image: Path, root: Path | None = None, dataset: str = "") -> Case:
+    """A :class:`Case` for one image, with ground truth when a case JSON sits beside it."""
+    root = root or image.parent
+    rel = image.relative_to(root) if image.is_relative_to(root) else Path(image.name)
+    name = str(rel.with_suffix(""))
+    sub = rel.parent.name
+    d = _case_json(image)
+    if d is None:
+        return Case(name=name, image=image, dataset=dataset or root.name, style=sub)
+    strokes = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in d["strokes"]]
+    kps = {code: np.asarray(d[k], dtype=np.float64).reshape(-1, 2) for k, code in KEYPOINT_CLASSES.items() if k in d}
+    return Case(name=name, image=image, dataset=dataset or root.name, style=str(d.get("style", sub) or sub),
+                width=float(d["width"]) if d.get("width") is not None else None, strokes=strokes,
+                keypoints=kps or None, meta={k: d[k] for k in ("source", "licence") if k in d})
+
+
+def discover_cases(specs: list[str], limit: int | None = None) -> list[Case]:
+    """Cases named by ``bench.cases``: folders (searched recursively for images) or image files."""
+    cases: list[Case] = []
+    for spec in specs:
+        p = Path(str(spec)).expanduser()
+        if p.is_dir():
+            root = p.resolve()
+            images = sorted(q for q in root.rglob("*") if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)
+            if not images:
+                raise UsageError(f"no images in folder {spec}")
+            cases.extend(load_case(q, root, root.name) for q in images)
+        elif p.is_file():
+            cases.append(load_case(p.resolve(), p.resolve().parent, p.resolve().parent.name))
+        else:
+            raise UsageError(f"case folder or image not found: {spec}")
+    if not cases:
+        raise UsageError("no cases: give bench.cases=[FOLDER,...]")
+    if limit is not None:
+        cases = cases[: int(limit)]
+    return cases
+
+
+def load_grey(path: Path) -> np.ndarray:
+    """8-bit grey of an image file (PIL ``L``), transparent pixels composited over white first.
+
+    The benchmark drops alpha (metrics.md §2.2); inputs such as the authors' RGBA example draw on a
+    transparent background, so fidelity needs the composite.
+    """
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im.load()
+        if im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info):
+            rgba = im.convert("RGBA")
+            bg = Image.new("RGBA", rgba.size, (255, 255, 255, 255))
+            im = Image.alpha_composite(bg, rgba)
+        return np.asarray(im.convert("L"))
+
+
+# -- artifacts ---------------------------------------------------------------------------------
+def stored_keys(images: list[Path], cfg: Any, store: ArtifactStore) -> BatchResult:
+    """What a batch would produce, from the store only (``bench.run_pipeline=false``)."""
+    from pipeline.registry import active_stages
+
+    stages = active_stages(cfg.runtime.get("until"))
+    batch = BatchResult(stages=[s.name for s in stages])
+    for tasks in plan(images, cfg, stages):
+        per = batch.results.setdefault(tasks[0].image, {})
+        for t in tasks:
+            status = "cached" if store.exists(t.stage, t.key) else "skipped"
+            per[t.stage] = TaskResult(t.image, t.stage, t.key, status,
+                                      error=None if status == "cached" else "not in the store")
+    return batch
+
+
+def final_curves(store: ArtifactStore, keys: dict[str, str]) -> tuple[list[np.ndarray] | None, str]:
+    """The output curves of an image and where they came from (``export``, ``select+flow`` or ``none``)."""
+    if "export" in keys:
+        art = store.load("export", keys["export"])
+        return [np.asarray(c["points"], dtype=np.float64).reshape(-1, 2) for c in art.data.get("curves", [])], "export"
+    if "select" in keys and "flow" in keys:
+        from stages.artifact import unpack_ragged
+
+        flow = store.load("flow", keys["flow"])
+        chosen = store.load("select", keys["select"]).data.get("chosen", [])
+        curves = unpack_ragged(flow.arrays["curve_xy"], flow.arrays["curve_xy_offsets"])
+        ids = None
+        if "topology" in keys:  # chosen are path ids; flow curves are in topology path order
+            paths = store.load("topology", keys["topology"]).data.get("paths", [])
+            ids = {int(p["id"]): k for k, p in enumerate(paths)}
+        out = []
+        for c in chosen:
+            k = ids.get(int(c)) if ids is not None else int(c)
+            if k is not None and 0 <= k < len(curves):
+                out.append(np.asarray(curves[k], dtype=np.float64).reshape(-1, 2))
+        return out, "select+flow"
+    return None, "none"
+
+
+def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(points (n, 2) in (x, y), types (n,)) of the keypoints artifact, or None."""
+    if "keypoints" not in keys:
+        return None
+    art = store.load("keypoints", keys["keypoints"])
+    pts = np.asarray(art.arrays.get("points", np.zeros((0, 2))), dtype=np.float64).reshape(-1, 2)
+    types = np.asarray(art.arrays.get("types", np.zeros(0)), dtype=np.int64).reshape(-1)
+    return pts, types
+
+
+def score_keypoints(pred: tuple[np.ndarray, np.ndarray], gt: dict[int, np.ndarray], height: int,
+                    kcfg: dict) -> dict:
+    """Keypoint metrics via :mod:`stages.evaluate.keypoints` (written by the keypoint engineer)."""
+    try:
+        from stages.evaluate import keypoints as kpm
+    except ImportError:
+        return {}
+    return kpm.keypoint_scores(pred[0], pred[1], gt, height=height, **kcfg)
+
+
+# -- scoring one case ----------------------------------------------------------------------------
+def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict) -> tuple[dict, dict]:
+    """One row of metrics for a case, and what its picture needs.
+
+    Returns
+    -------
+    (dict, dict)
+        The row (flat, JSON-friendly) and picture data (grey, curves, markers).
+    """
+    from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, render_ink,
+                                       score_raster, stage_timings)
+    from stages.evaluate.topology import TopologyParams, compare_topology, extract_topology
+
+    rparams = RasterParams.from_cfg(bcfg["raster"])
+    tparams = TopologyParams.from_cfg(bcfg["topology"])
+    image = str(case.image)
+    per = batch.results.get(image, {})
+    keys = batch.keys(image)
+    row: dict[str, Any] = {"name": case.name, "dataset": case.dataset, "style": case.style, "group": case.group,
+                           "image": image, "has_gt": case.strokes is not None, "error": ""}
+    for stage in batch.stages:
+        r = per.get(stage)
+        if r is not None and r.status in ("failed", "skipped") and not row["error"]:
+            row["error"] = f"{stage}: {r.error}"
+    row.update(stage_timings({s: store.manifest(s, k) for s, k in keys.items()}))
+
+    grey = load_grey(case.image)
+    shape = grey.shape
+    input_ink = grey.astype(np.float64) < rparams.ink_threshold
+    width = case.width if case.width is not None else estimate_stroke_width(input_ink)
+    row["width"] = round(float(width), 3)
+    pic: dict[str, Any] = {"grey": grey, "curves": [], "markers": {}, "gt": None, "keypoints": None}
+
+    curves, source = final_curves(store, keys)
+    row["curves_from"] = source
+    expects_curves = "export" in batch.stages or "select" in batch.stages
+    if curves is not None:
+        pic["curves"] = curves
+        ink = render_ink(curves, shape, rparams)
+        fid = score_raster(ink, fidelity_reference(input_ink, rparams), rparams, prefix="fid_")
+        row.update({k: v for k, v in fid.items() if k != "fid_blank"})
+        if case.strokes is not None:
+            gt_ink = render_ink(case.strokes, shape, rparams)
+            row.update({k: v for k, v in score_raster(ink, gt_ink, rparams).items() if k != "blank"})
+        if fid["fid_blank"] and not row["error"]:
+            row["error"] = "blank output (no ink after rasterising the curves)"
+        topo = extract_topology(curves, width, tparams)
+        pic["markers"] = {"free_end": topo.free_ends, "junction": topo.junctions, "gap": topo.gaps[:, :2]}
+        if case.strokes is not None:
+            gt_topo = extract_topology(case.strokes, width, tparams)
+            row.update(compare_topology(topo, gt_topo, width, tparams))
+            pic["gt"] = (case.strokes, {"free_end": gt_topo.free_ends, "junction": gt_topo.junctions,
+                                        "gap": gt_topo.gaps[:, :2]})
+        else:
+            row.update(topo.counts())
+    elif expects_curves and not row["error"]:
+        row["error"] = "no curves"
+
+    kp = predicted_keypoints(store, keys)
+    if kp is not None:
+        row["kp_count"] = int(len(kp[0]))
+        pic["keypoints"] = kp
+        if case.keypoints is not None:
+            row.update(score_keypoints(kp, case.keypoints, shape[0], dict(bcfg["keypoints"])))
+    return row, pic
+
+
+# -- report ------------------------------------------------------------------------------------
+def _fmt(v: Any, col: str = "") -> str:
+    if isinstance(v, bool):
+        return "yes" if v else ""
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            return "–"
+        if col in ("chamfer", "hausdorff") or col.endswith(("_chamfer", "_hausdorff")):
+            return f"{v:.5f}"
+        if abs(v) >= 100:
+            return f"{v:.0f}"
+        return f"{v:.3f}" if abs(v) < 10 else f"{v:.1f}"
+    return str(v)
+
+
+def _sort_key(sort_by: str):
+    lower_is_better = ("chamfer" in sort_by or "hausdorff" in sort_by or sort_by in
+                       ("junction_gaps", "dangling", "duplicated_px", "time_s"))
+
+    def key(row: dict):
+        if row.get("error"):
+            return (0, 0.0)
+        v = row.get(sort_by)
+        if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            return (1, 0.0)
+        return (2, -float(v) if lower_is_better else float(v))
+
+    return key
+
+
+def _pick_sort_column(rows: list[dict], sort_by: str) -> str:
+    """``sort_by``, or the fidelity counterpart when no row has it (plain images only)."""
+    if any(isinstance(r.get(sort_by), (int, float)) for r in rows):
+        return sort_by
+    return "fid_" + sort_by if any(isinstance(r.get("fid_" + sort_by), (int, float)) for r in rows) else sort_by
+
+
+def summary_tables(rows: list[dict], bcfg: dict) -> dict[str, list[dict]]:
+    """Summaries of the ground-truth metrics (cases with GT) and of fidelity/topology/cost (all cases)."""
+    from stages.evaluate.score import summarise
+
+    rep = bcfg["report"]
+    gt_rows = [r for r in rows if r.get("has_gt")]
+    out = {}
+    if gt_rows:
+        out["ground truth"] = summarise(gt_rows, list(rep["gt_columns"]), group_by="group")
+    out["fidelity, topology, cost"] = summarise(rows, list(rep["fidelity_columns"]), group_by="group")
+    return out
+
+
+def print_tables(tables: dict[str, list[dict]], console) -> None:
+    """rich tables: one row per group, each cell ``median (mean)``."""
+    from rich.table import Table
+
+    for title, entries in tables.items():
+        cols = [k for k in entries[0] if k not in ("group", "cases", "failures")]
+        cols = [c for c in cols if any(e[c]["n"] for e in entries)]
+        t = Table(title=f"polyvec-bench — {title}: median (mean)", show_lines=False)
+        t.add_column("group")
+        t.add_column("cases", justify="right")
+        t.add_column("fail", justify="right")
+        for c in cols:
+            t.add_column(c, justify="right")
+        for e in entries:
+            cells = [f"{_fmt(e[c]['median'], c)} ({_fmt(e[c]['mean'], c)})" for c in cols]
+            t.add_row(e["group"], str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
+        console.print(t)
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def case_picture(pic: dict, scale: int) -> np.ndarray:
+    """Panels: output curves with their topology; ground truth with its topology; keypoints."""
+    from stages.evaluate.render import hstack_panels, overlay
+
+    panels = [overlay(pic["grey"], pic["curves"], pic["markers"], scale=scale)]
+    if pic["gt"] is not None:
+        panels.append(overlay(pic["grey"], pic["gt"][0], pic["gt"][1], scale=scale))
+    if pic["keypoints"] is not None:
+        pts, types = pic["keypoints"]
+        marks = {"free_end": pts[types == 1], "junction": pts[types == 3], "corner": pts[types == 5]}
+        panels.append(overlay(pic["grey"], [], marks, scale=scale))
+    return hstack_panels(panels)
+
+
+def write_report(rows: list[dict], tables: dict, pictures: dict[str, str], out: Path, bcfg: dict,
+                 extra: dict) -> None:
+    """cases.json, cases.csv, summary.json and report.html (pictures already in ``out/img``)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "cases.json").write_text(json.dumps(rows, indent=1, default=_json_default))
+    cols: list[str] = []
+    for r in rows:
+        cols.extend(k for k in r if k not in cols)
+    with open(out / "cases.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
+    (out / "summary.json").write_text(json.dumps(dict(extra, tables=tables), indent=1, default=_json_default))
+    if bcfg["report"]["html"]:
+        (out / "report.html").write_text(html_report(rows, tables, pictures, bcfg, extra))
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def html_report(rows: list[dict], tables: dict, pictures: dict[str, str], bcfg: dict, extra: dict) -> str:
+    """A self-contained HTML page (pictures linked from img/): summaries, then cases worst first."""
+    esc = html.escape
+    rep = bcfg["report"]
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>polyvec-bench</title><style>",
+             "body{font-family:sans-serif;margin:1em}table{border-collapse:collapse;margin:.5em 0}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;font-size:12px;text-align:right}"
+             "th{background:#eee}td:first-child{text-align:left}.case{margin:1.5em 0;border-top:2px solid #888}"
+             "img{max-width:100%;image-rendering:pixelated}.err{color:#b00}</style></head><body>",
+             "<h1>polyvec-bench</h1>",
+             f"<p>{esc(extra.get('command', ''))}<br>{len(rows)} cases; batch wall time "
+             f"{extra.get('batch_wall_s', 0):.1f} s; stages: {esc(', '.join(extra.get('stages', [])))}</p>",
+             "<p>Pictures: output curves (one colour each) with their <b style='color:#00a000'>free ends</b>, "
+             "<b style='color:#dc0000'>junctions</b> and <b style='color:#ff8c00'>junction gaps</b>; then the "
+             "ground truth with the same extraction; then the detected keypoints (green endpoint, red junction, "
+             "blue corner).</p>"]
+    for title, entries in tables.items():
+        cols = [k for k in entries[0] if k not in ("group", "cases", "failures") and any(e[k]["n"] for e in entries)]
+        parts.append(f"<h2>{esc(title)}: median (mean)</h2><table><tr><th>group</th><th>cases</th><th>fail</th>"
+                     + "".join(f"<th>{esc(c)}</th>" for c in cols) + "</tr>")
+        for e in entries:
+            parts.append(f"<tr><td>{esc(e['group'])}</td><td>{e['cases']}</td><td>{e['failures']}</td>"
+                         + "".join(f"<td>{_fmt(e[c]['median'], c)} ({_fmt(e[c]['mean'], c)})</td>" for c in cols)
+                         + "</tr>")
+        parts.append("</table>")
+    sort_by = extra.get("sorted_by", rep["sort_by"])
+    parts.append(f"<h2>Cases, worst first by {esc(sort_by)}</h2>")
+    shown = [c for c in list(rep["gt_columns"]) + list(rep["fidelity_columns"])]
+    for r in rows:
+        cells = [c for c in shown if c in r]
+        parts.append(f"<div class='case'><h3>{esc(r['name'])} <small>({esc(r['group'])})</small></h3>")
+        if r.get("error"):
+            parts.append(f"<p class='err'>{esc(str(r['error']))}</p>")
+        parts.append("<table><tr>" + "".join(f"<th>{esc(c)}</th>" for c in cells) + "</tr><tr>"
+                     + "".join(f"<td>{_fmt(r[c], c)}</td>" for c in cells) + "</tr></table>")
+        if r["name"] in pictures:
+            parts.append(f"<img src='{esc(pictures[r['name']])}' loading='lazy'>")
+        parts.append("</div>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+# -- driver ------------------------------------------------------------------------------------
+def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
+    """Run the pipeline over the cases of ``cfg.bench``, score them and write the report.
+
+    Returns
+    -------
+    (list of dict, dict)
+        Per-case rows (worst first) and the summary tables.
+    """
+    from PIL import Image
+    from rich.console import Console
+
+    console = console or Console(stderr=True)
+    bcfg = OmegaConf.to_container(cfg.bench, resolve=True)
+    cases = discover_cases(list(bcfg["cases"] or []), bcfg.get("limit"))
+    out = Path(str(bcfg["out"]))
+    store = ArtifactStore(str(cfg.store.path))
+    images = [c.image for c in cases]
+    if len({str(i) for i in images}) != len(images):
+        raise UsageError("the same image is listed twice in bench.cases")
+    t0 = time.perf_counter()
+    if bcfg["run_pipeline"]:
+        from pipeline.cli import _Progress
+        from pipeline.registry import active_stages
+
+        stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
+        show = bool(cfg.runtime.get("progress", True)) and console.is_terminal
+        with _Progress(stages, len(images), show) as prog:
+            batch = run_batch([str(i) for i in images], cfg, on_result=prog, store=store)
+    else:
+        batch = stored_keys([str(i) for i in images], cfg, store)
+    batch_wall = time.perf_counter() - t0
+
+    rows, pics = [], {}
+    for case in cases:
+        try:
+            row, pic = score_case(case, batch, store, bcfg)
+        except Exception as exc:  # noqa: BLE001 - one unscorable case must not sink the report
+            row, pic = {"name": case.name, "dataset": case.dataset, "style": case.style, "group": case.group,
+                        "image": str(case.image), "has_gt": case.strokes is not None,
+                        "error": f"scoring failed: {type(exc).__name__}: {exc}"}, None
+        rows.append(row)
+        pics[case.name] = pic
+    sort_by = _pick_sort_column(rows, bcfg["report"]["sort_by"])
+    rows.sort(key=_sort_key(sort_by))
+
+    pictures: dict[str, str] = {}
+    if bcfg["report"]["html"]:
+        (out / "img").mkdir(parents=True, exist_ok=True)
+        for r in rows[: int(bcfg["report"]["max_html_cases"])]:
+            pic = pics.get(r["name"])
+            if pic is None:
+                continue
+            rel = f"img/{_safe_name(r['name'])}.png"
+            Image.fromarray(case_picture(pic, int(bcfg["report"]["image_scale"]))).save(out / rel)
+            pictures[r["name"]] = rel
+    tables = summary_tables(rows, bcfg)
+    extra = {"command": "polyvec-bench " + " ".join(sys.argv[1:]), "batch_wall_s": batch_wall,
+             "stages": batch.stages, "sorted_by": sort_by, "cases": len(rows),
+             "failures": sum(1 for r in rows if r.get("error")), "bench": bcfg,
+             "config": {k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
+                        for k, v in cfg.items() if k not in ("bench", "hydra")}}
+    write_report(rows, tables, pictures, out, bcfg, extra)
+    print_tables(tables, console)
+    fails = [r for r in rows if r.get("error")]
+    for r in fails[:20]:
+        console.print(f"[red]failed[/] {r['name']}: {r['error']}", highlight=False, soft_wrap=True)
+    if len(fails) > 20:
+        console.print(f"… and {len(fails) - 20} more failures (see {out / 'cases.csv'})")
+    console.print(f"batch {batch_wall:.1f} s; report in {out}/ (report.html, cases.csv, cases.json, summary.json)",
+                  highlight=False)
+    return rows, tables
+
+
+_EXIT = {"code": 0}
+
+
+@hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")
+def _app(cfg: DictConfig) -> None:
+    try:
+        rows, _ = run_bench(cfg)
+    except UsageError as exc:
+        print(f"polyvec-bench: error: {exc}", file=sys.stderr)
+        _EXIT["code"] = 2
+        return
+    if any(r.get("error") for r in rows):
+        _EXIT["code"] = 1
+
+
+def main() -> None:
+    """Console entry point; exits 1 when any case failed, 2 on a usage error."""
+    try:
+        _app()
+    finally:
+        from pipeline.runner import close_client
+
+        close_client()
+    sys.exit(_EXIT["code"])
+
+
+if __name__ == "__main__":
+    main()
