@@ -1,0 +1,156 @@
+"""Stage ``keypoints``: CNN heatmaps, peaks and keypoint types (paper §3, Appendix B).
+
+``run(cfg, prep=Artifact)`` normalises the prep stage's grey image the authors' way, runs the
+keypoint network (:mod:`stages.keypoints.network`) — in overlapping blended tiles when the drawing
+is large — and extracts keypoints from the detection heatmap H1 by non-maximum suppression; each
+keypoint's type is the argmax of the three class heatmaps. See :mod:`stages.keypoints.inference` for
+the choices made.
+
+The network weights ship inside the package (``weights/keypoints.pt``, see ``weights/MODEL_CARD.md``)
+and are trained by ``polyvec-train`` on procedural drawings (:mod:`stages.keypoints.generator`).
+``STAGE_VERSION`` carries a short hash of the weights file, so new weights invalidate cached results.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stages.artifact import Artifact
+from stages.errors import InputError
+from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
+from stages.keypoints.network import KeypointNet, NetConfig
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+PACKAGED_WEIGHTS = WEIGHTS_DIR / "keypoints.pt"
+
+
+def _file_hash(path: Path) -> str:
+    if not path.is_file():
+        return "untrained"
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:10]
+
+
+STAGE_VERSION = "1+" + _file_hash(PACKAGED_WEIGHTS)
+
+_MODELS: dict[str, tuple[KeypointNet, str]] = {}
+
+# The architecture used when no weights file exists yet (random weights: results are meaningless).
+_UNTRAINED_CONFIG = NetConfig()
+
+
+def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
+    """Load (and cache in this process) the keypoint network.
+
+    Parameters
+    ----------
+    weights : str or Path, optional
+        A checkpoint written by ``polyvec-train`` (``{"network": ..., "state_dict": ...}``);
+        ``None`` or ``"packaged"`` for the weights shipped with the package.
+
+    Returns
+    -------
+    model : KeypointNet
+        In eval mode, float32, on the CPU.
+    name : str
+        ``<file name>@<sha256 prefix>`` (``untrained`` when no weights file exists).
+    """
+    path = PACKAGED_WEIGHTS if weights in (None, "", "packaged") else Path(weights)
+    key = str(path)
+    if key in _MODELS:
+        return _MODELS[key]
+    if not path.is_file():
+        if path != PACKAGED_WEIGHTS:
+            raise InputError(f"keypoints.weights: no such file {path}")
+        torch.manual_seed(0)
+        model, name = KeypointNet(_UNTRAINED_CONFIG), "untrained"
+    else:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
+        model.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
+        name = f"{path.name}@{_file_hash(path)}"
+    model.eval()
+    _MODELS[key] = (model, name)
+    return model, name
+
+
+def run(cfg: dict, prep: Artifact) -> Artifact:
+    """Detect and classify keypoints.
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``keypoints`` config section (conf/keypoints/default.yaml).
+    prep : Artifact
+        The prep artifact (``grey`` float32 (H, W), 1 = white; ``mask`` bool (H, W) narrow band).
+
+    Returns
+    -------
+    Artifact
+        ``heatmaps`` float32 (4, H, W) [detection, endpoint, junction, corner]; ``points`` float32
+        (N, 2) (x, y); ``types`` int8 (N,); ``scores`` float32 (N,); data ``points`` and ``weights``.
+    """
+    torch.set_num_threads(int(cfg["torch_threads"]))
+    grey = np.asarray(prep["grey"], np.float32)
+    if grey.ndim != 2 or min(grey.shape) < 1:
+        raise InputError(f"keypoints: expected a 2-D grey image, got shape {grey.shape}")
+    model, name = load_model(cfg["weights"])
+    x = network_input(grey, float(cfg["contrast_floor"]))
+    heatmaps = predict_heatmaps(model, x, int(cfg["tile_size"]), int(cfg["tile_overlap"]))
+    band = None
+    if cfg["restrict_to_band"] and "mask" in prep.arrays:
+        band = dilate_band(np.asarray(prep["mask"], bool), int(cfg["band_dilation"]))
+    points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
+                                           band, bool(cfg["subpixel"]))
+    data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
+                   for p, t, s in zip(points, types, scores)]
+    return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
+                            "scores": scores},
+                    data={"points": data_points, "weights": name, "count": len(data_points)})
+
+
+_COLOURS = {1: (40, 90, 255), 3: (255, 150, 0), 5: (0, 180, 60)}  # endpoint, junction, corner
+
+
+def render_keypoints(grey: np.ndarray, heatmaps: np.ndarray | None, points: np.ndarray,
+                     types: np.ndarray) -> np.ndarray:
+    """Draw keypoints (and the detection heatmap) over the drawing.
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        (H, W) in [0, 1], 1 = white.
+    heatmaps : numpy.ndarray or None
+        (4, H, W); H1 is overlaid in red where it is high.
+    points : numpy.ndarray
+        (N, 2) in (x, y).
+    types : numpy.ndarray
+        (N,) codes: endpoints blue, junctions orange, sharp corners green (paper Fig. 2 colours).
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (H, W, 3) RGB.
+    """
+    from skimage.draw import circle_perimeter, disk
+
+    g = np.clip(np.asarray(grey, np.float32), 0, 1)
+    rgb = np.repeat((0.35 + 0.65 * g)[..., None], 3, axis=2)
+    if heatmaps is not None:
+        a = np.clip(np.asarray(heatmaps[0], np.float32), 0, 1)[..., None] * 0.7
+        rgb = rgb * (1 - a) + a * np.array([1.0, 0.0, 0.0])
+    img = (rgb * 255).round().astype(np.uint8)
+    h, w = g.shape
+    rad = max(3, int(round(min(h, w) / 120)))
+    for (x, y), t in zip(np.asarray(points).reshape(-1, 2), np.asarray(types).reshape(-1)):
+        c = _COLOURS.get(int(t), (255, 0, 255))
+        r, cc = int(np.floor(y)), int(np.floor(x))
+        for rr_ in (rad, rad + 1):
+            pr, pc = circle_perimeter(r, cc, rr_, shape=(h, w))
+            img[pr, pc] = c
+        pr, pc = disk((r, cc), 1.5, shape=(h, w))
+        img[pr, pc] = c
+    return img

@@ -1,0 +1,167 @@
+"""Running the keypoint network on a drawing: normalisation, padding, tiles, peaks.
+
+Choices made on purpose
+-----------------------
+* **Contrast normalisation** follows the authors (``png_to_numpy(normalize=True)``): ink = 1 − grey,
+  divided by max(max, 0.2), then stretched so the 2nd–98th percentiles span [0, 1]. On sparse clean
+  drawings both percentiles are paper (the authors' code then divides by zero); we keep the stretch
+  range at least ``contrast_floor`` wide, which leaves such drawings nearly as they are. Training
+  applies the very same function (pipeline/train.py), so the network sees what it was trained on.
+* **Padding** as the authors: zeros (paper) at the bottom and right up to a multiple of the network's
+  stride, always 1..stride pixels (their ``8 - dim % 8``).
+* **Tiles**: drawings larger than ``tile_size`` run in overlapping tiles whose outputs are blended
+  with weights that ramp linearly over the overlap (no seams); the authors cut non-overlapping
+  720-px tiles, which leaves seams and loses keypoints on tile borders.
+* **Peaks**: ``skimage.feature.peak_local_max`` on H1 with ``threshold`` (authors 0.5) and
+  ``min_distance`` (authors 1, which lets duplicate peaks 2 px apart through; 3 by default), only
+  within ``band_dilation`` px of the narrow band (the loss only ever saw the band, so H1 is not
+  trained off it). Positions are refined to sub-pixel by a parabola through the 3×3 neighbourhood
+  and reported at pixel centres, (j + 0.5, i + 0.5) + offset.
+* **Type** = argmax of H2..H4 at the peak pixel (endpoint 1, junction 3, corner 5).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy import ndimage
+from skimage.feature import peak_local_max
+
+from stages.keypoints.targets import TYPE_CODES
+
+
+def network_input(grey: np.ndarray, contrast_floor: float) -> np.ndarray:
+    """The authors' contrast normalisation, from grey (1 = white) to ink (1 = ink).
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        (H, W) in [0, 1], 1 = paper white.
+    contrast_floor : float
+        Smallest width of the percentile stretch range.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (H, W) in [0, 1], 1 = ink.
+    """
+    ink = 1.0 - np.asarray(grey, np.float32)
+    ink = ink / max(float(ink.max()), 0.2)
+    lo, hi = np.percentile(ink, (2, 98))
+    hi = max(float(hi), float(lo) + contrast_floor)
+    return np.clip((ink - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
+
+
+def pad_to_multiple(x: np.ndarray, multiple: int) -> np.ndarray:
+    """Zero-pad bottom and right by ``multiple - dim % multiple`` (1..multiple) pixels, as the authors."""
+    h, w = x.shape
+    return np.pad(x, ((0, multiple - h % multiple), (0, multiple - w % multiple)))
+
+
+def _tile_starts(n: int, tile: int, step: int) -> list[int]:
+    if n <= tile:
+        return [0]
+    starts = list(range(0, n - tile, step))
+    starts.append(n - tile)
+    return starts
+
+
+def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int) -> np.ndarray:
+    """Heatmaps H1..H4 of a normalised drawing, tiled with blended overlaps when large.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        A :class:`~stages.keypoints.network.KeypointNet` in eval mode.
+    x : numpy.ndarray
+        (H, W) network input (1 = ink); padded here to the network's multiple.
+    tile_size, tile_overlap : int
+        Tile side and overlap in pixels (rounded down to the network's multiple).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (4, H, W) (cropped back to the input size).
+    """
+    m = model.multiple
+    h, w = x.shape
+    xp = pad_to_multiple(x, m)
+    hp, wp = xp.shape
+    tile = max(m, tile_size // m * m)
+    overlap = min(tile_overlap // m * m, tile - m)
+    t = torch.from_numpy(xp)[None, None]
+    with torch.inference_mode():
+        if hp <= tile and wp <= tile:
+            out = model(t)[0][0].float().numpy()
+            return np.ascontiguousarray(out[:, :h, :w])
+        acc = np.zeros((4, hp, wp), np.float32)
+        wsum = np.zeros((hp, wp), np.float32)
+        ramp = np.minimum(np.arange(tile) + 0.5, np.arange(tile)[::-1] + 0.5) / max(overlap, 1)
+        ramp = np.clip(ramp, 1e-3, 1.0).astype(np.float32)
+        for i0 in _tile_starts(hp, tile, tile - overlap):
+            for j0 in _tile_starts(wp, tile, tile - overlap):
+                th, tw = min(tile, hp), min(tile, wp)
+                y = model(t[..., i0:i0 + th, j0:j0 + tw])[0][0].float().numpy()
+                wt = ramp[:th, None] * ramp[None, :tw] if (th == tile and tw == tile) else \
+                    np.outer(ramp[:th] if th == tile else np.ones(th), ramp[:tw] if tw == tile else np.ones(tw))
+                acc[:, i0:i0 + th, j0:j0 + tw] += y * wt
+                wsum[i0:i0 + th, j0:j0 + tw] += wt
+        return np.ascontiguousarray((acc / wsum)[:, :h, :w])
+
+
+def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
+                   band: np.ndarray | None = None, subpixel: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Non-maximum suppression on H1 and typing by the class maps.
+
+    Parameters
+    ----------
+    heatmaps : numpy.ndarray
+        (4, H, W): H1 detection, H2 endpoint, H3 junction, H4 corner.
+    threshold : float
+        Minimum H1 value of a peak.
+    min_distance : int
+        Peaks are separated by at least this many pixels (Chebyshev; ``peak_local_max``).
+    band : numpy.ndarray, optional
+        bool (H, W): peaks outside it are discarded.
+    subpixel : bool
+        Refine peak positions by a parabola fit per axis.
+
+    Returns
+    -------
+    points : numpy.ndarray
+        float32 (N, 2) in (x, y), pixel centres at +0.5.
+    types : numpy.ndarray
+        int8 (N,) in {1, 3, 5}.
+    scores : numpy.ndarray
+        float32 (N,) H1 at the peaks.
+    """
+    h1 = heatmaps[0]
+    coords = peak_local_max(h1, min_distance=max(int(min_distance), 1), threshold_abs=threshold,
+                            exclude_border=False)
+    if band is not None and len(coords):
+        coords = coords[band[coords[:, 0], coords[:, 1]]]
+    if len(coords) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, np.int8), np.zeros(0, np.float32)
+    i, j = coords[:, 0], coords[:, 1]
+    yx = coords.astype(np.float64) + 0.5
+    if subpixel:
+        hh, ww = h1.shape
+        for axis, (lo_idx, hi_idx) in enumerate([((np.maximum(i - 1, 0), j), (np.minimum(i + 1, hh - 1), j)),
+                                                 ((i, np.maximum(j - 1, 0)), (i, np.minimum(j + 1, ww - 1)))]):
+            a, b, c = h1[lo_idx], h1[i, j], h1[hi_idx]
+            den = a - 2 * b + c
+            off = np.where(den < -1e-6, 0.5 * (a - c) / np.where(den < -1e-6, den, -1.0), 0.0)
+            yx[:, axis] += np.clip(off, -0.5, 0.5)
+    cls = np.argmax(heatmaps[1:4, i, j], axis=0)
+    types = np.asarray(TYPE_CODES, np.int8)[cls]
+    order = np.argsort(-h1[i, j], kind="stable")
+    return (yx[order][:, ::-1].astype(np.float32), types[order], h1[i, j][order].astype(np.float32))
+
+
+def dilate_band(mask: np.ndarray, radius: int) -> np.ndarray:
+    """The narrow band grown by ``radius`` pixels (disk)."""
+    if radius <= 0:
+        return mask.astype(bool)
+    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    return ndimage.binary_dilation(mask, structure=(xx * xx + yy * yy) <= radius * radius)

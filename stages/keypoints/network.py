@@ -1,0 +1,184 @@
+"""The keypoint network (paper §3, Appendix B, Fig. 21; authors' notes §2 "PyramidalNet").
+
+A ResNeXt stem, an hourglass that downsamples with learned 2×2 stride-2 convolutions and upsamples
+with PixelShuffle, skip connections at every level, four full-resolution heads (H1 any keypoint,
+H2 endpoint, H3 junction, H4 sharp corner) and two intermediate H1 heads at 0.25× and 0.5× (H5, H6)
+that only serve training.
+
+Choices made on purpose
+-----------------------
+* **Width grows with depth** (``level_channels``), where the authors keep 96 channels at every level.
+  A 96-channel full-resolution tensor costs far more than 2 CPU cores can afford for a 700×700
+  drawing in 2 s; the receptive field comes from the coarse levels, where channels are cheap.
+* **LeakyReLU everywhere**, as Appendix B says. The authors' code uses sin (SIREN) activations in
+  the 1/8 bottleneck; the paper does not mention them and they gain nothing measurable here.
+* **Class heads** share one small full-resolution block ending in a 3-channel sigmoid, instead of
+  three separate ResNeXt modules: the class maps are only read at detected peaks (argmax), so a light
+  head suffices and keeps inference fast.
+* H1 and the intermediate maps end in ``tanh`` (as the authors'), the class maps in ``sigmoid``.
+* Skips are concatenated then fused by a 3×3 convolution (the authors' code); Fig. 21 says "add".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Width and depth of :class:`KeypointNet` (``conf/train/default.yaml`` ``network``).
+
+    Attributes
+    ----------
+    stem_mid : int
+        Channels inside the three ResNeXt branches of the stem.
+    level_channels : tuple of int
+        Feature channels at resolution 1, 1/2, 1/4, …, 1/2**depth (length ``depth + 1``); all but the
+        first must be divisible by 4 (PixelShuffle).
+    bottleneck_blocks : int
+        Residual blocks at the coarsest level (the paper uses 3, with twice the channels inside).
+    negative_slope : float
+        LeakyReLU slope.
+    """
+
+    stem_mid: int = 8
+    level_channels: tuple[int, ...] = (16, 32, 48, 64)
+    bottleneck_blocks: int = 3
+    negative_slope: float = 0.1
+
+    @property
+    def depth(self) -> int:
+        return len(self.level_channels) - 1
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "NetConfig":
+        return cls(stem_mid=int(d["stem_mid"]), level_channels=tuple(int(c) for c in d["level_channels"]),
+                   bottleneck_blocks=int(d["bottleneck_blocks"]), negative_slope=float(d["negative_slope"]))
+
+    def to_dict(self) -> dict:
+        return {"stem_mid": self.stem_mid, "level_channels": list(self.level_channels),
+                "bottleneck_blocks": self.bottleneck_blocks, "negative_slope": self.negative_slope}
+
+
+def _cbr(cin: int, cout: int, k: int, slope: float, dilation: int = 1, act: bool = True) -> nn.Sequential:
+    """Conv + BatchNorm (+ LeakyReLU); 'same' padding."""
+    pad = dilation * (k // 2)
+    layers: list[nn.Module] = [nn.Conv2d(cin, cout, k, padding=pad, dilation=dilation, bias=False),
+                               nn.BatchNorm2d(cout)]
+    if act:
+        layers.append(nn.LeakyReLU(slope, inplace=True))
+    return nn.Sequential(*layers)
+
+
+class ResNeXtModule(nn.Module):
+    """The stem: three parallel branches with growing receptive field, fused by 1×1 conv.
+
+    Branches: 1×1 → 3×3; 3×3 → 3×3 (dilation 2); 3×3 (dil. 2) → 3×3 (dil. 2), each ending in a 1×1
+    conv to ``cout``; concatenated, fused by 1×1 conv + BN, plus a 1×1 skip (authors' notes §2).
+    """
+
+    def __init__(self, cin: int, cout: int, mid: int, slope: float):
+        super().__init__()
+        self.branches = nn.ModuleList([
+            nn.Sequential(_cbr(cin, mid, 1, slope), _cbr(mid, mid, 3, slope), _cbr(mid, cout, 1, slope)),
+            nn.Sequential(_cbr(cin, mid, 3, slope), _cbr(mid, mid, 3, slope, 2), _cbr(mid, cout, 1, slope)),
+            nn.Sequential(_cbr(cin, mid, 3, slope, 2), _cbr(mid, mid, 3, slope, 2), _cbr(mid, cout, 1, slope)),
+        ])
+        self.fuse = _cbr(3 * cout, cout, 1, slope, act=False)
+        self.skip = nn.Conv2d(cin, cout, 1)
+        self.act = nn.LeakyReLU(slope, inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.fuse(torch.cat([b(x) for b in self.branches], dim=1))
+        return self.act(y + self.skip(x))
+
+
+class ResidualModule(nn.Module):
+    """Bottleneck residual block 1×1 → 3×3 → 1×1 with a 1×1 conv + BN skip."""
+
+    def __init__(self, cin: int, cout: int, slope: float, mid: int | None = None):
+        super().__init__()
+        mid = mid or max(cout // 2, 4)
+        self.body = nn.Sequential(_cbr(cin, mid, 1, slope), _cbr(mid, mid, 3, slope), _cbr(mid, cout, 1, slope, act=False))
+        self.skip = nn.Identity() if cin == cout else _cbr(cin, cout, 1, slope, act=False)
+        self.act = nn.LeakyReLU(slope, inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.body(x) + self.skip(x))
+
+
+class _Up(nn.Module):
+    """PixelShuffle(2), 3×3 conv to the finer level's width, concat skip, fuse, residual block."""
+
+    def __init__(self, cin: int, cout: int, slope: float):
+        super().__init__()
+        self.shuffle = nn.PixelShuffle(2)
+        self.expand = _cbr(cin // 4, cout, 3, slope, act=False)
+        self.fuse = _cbr(2 * cout, cout, 3, slope)
+        self.res = ResidualModule(cout, cout, slope)
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        x = self.expand(self.shuffle(x))
+        return self.res(self.fuse(torch.cat([x, skip], dim=1)))
+
+
+class KeypointNet(nn.Module):
+    """Hourglass keypoint detector producing H1..H6.
+
+    Input: (B, 1, H, W) contrast-normalised ink (1 = ink, 0 = paper), H and W multiples of
+    ``2**depth``. Output of :meth:`forward`: ``(final, intermediate)`` where ``final`` is (B, 4, H, W)
+    = [H1 detection (tanh), H2 endpoint, H3 junction, H4 corner (sigmoid)] and ``intermediate`` is the
+    list of H1 predictions at the coarser levels, coarsest first (0.25×, 0.5× for depth 3).
+    """
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        self.cfg = cfg
+        ch, s = cfg.level_channels, cfg.negative_slope
+        for c in ch[1:]:
+            if c % 4:
+                raise ValueError(f"level_channels {ch}: coarse widths must be divisible by 4 (PixelShuffle)")
+        self.stem = ResNeXtModule(1, ch[0], cfg.stem_mid, s)
+        self.shortcuts = nn.ModuleList([_cbr(c, c, 1, s, act=False) for c in ch[:-1]])
+        self.down_res = nn.ModuleList([ResidualModule(c, c, s) for c in ch[:-1]])
+        self.down = nn.ModuleList([nn.Sequential(nn.Conv2d(ch[k], ch[k + 1], 2, stride=2, bias=False),
+                                                 nn.BatchNorm2d(ch[k + 1]), nn.LeakyReLU(s, inplace=True))
+                                   for k in range(cfg.depth)])
+        c = ch[-1]
+        blocks = []
+        for b in range(cfg.bottleneck_blocks):
+            blocks.append(ResidualModule(c, c, s, mid=2 * c))
+        self.bottleneck = nn.Sequential(*blocks)
+        self.up = nn.ModuleList([_Up(ch[k + 1], ch[k], s) for k in range(cfg.depth)])
+        # Side heads: one per up level (index k = resolution 1/2**k); k = 0 is H1.
+        self.side = nn.ModuleList([nn.Conv2d(ch[k], 1, 3, padding=1) for k in range(min(cfg.depth, 3))])
+        self.class_head = nn.Sequential(_cbr(ch[0], ch[0], 3, s), nn.Conv2d(ch[0], 3, 1))
+
+    @property
+    def multiple(self) -> int:
+        """Input sides must be multiples of this."""
+        return 2 ** self.cfg.depth
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        f = self.stem(x)
+        skips = []
+        for k in range(self.cfg.depth):
+            skips.append(self.shortcuts[k](f))
+            f = self.down[k](self.down_res[k](f))
+        f = self.bottleneck(f)
+        intermediate = []
+        for k in reversed(range(self.cfg.depth)):
+            f = self.up[k](f, skips[k])
+            if 0 < k < len(self.side):  # the paper's H5 (0.25×) and H6 (0.5×)
+                intermediate.append(torch.tanh(self.side[k](f)))
+        h1 = torch.tanh(self.side[0](f))
+        cls = torch.sigmoid(self.class_head(f))
+        return torch.cat([h1, cls], dim=1), intermediate
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
