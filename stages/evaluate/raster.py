@@ -13,12 +13,13 @@ Vectors are rasterised the way the benchmark normalises them (black, round caps 
 
 Choices made on purpose
 -----------------------
-- **1-px minimum stroke width** (metrics.md §2.5). At the 512-px size of realvec_dev the benchmark width
-  is 0.512 px; an anti-aliased line that thin has a peak coverage near 50 %, so whether a pixel passes the
-  191.25 threshold depends on where the line falls relative to the pixel grid, and diagonal lines break
-  into dotted masks. With a width of at least 1 px a line crossing a pixel column always covers > 25 % of
-  some pixel in it, so the ink mask is a connected 1–2 px wide line, for ground truth and output alike.
-  ``min_width_px`` is a parameter; 0 reproduces the benchmark's width literally.
+- **1-px minimum stroke width** (metrics.md §2.5). A line crossing a pixel column spreads a coverage
+  of at least ``width`` over at most two pixels of it, so one of them reaches ``width / 2``; the ink
+  threshold needs 25 %. Below 0.5 px (long edge < 500, e.g. the 288-px fixtures) oblique lines break
+  into dots; at 512 px (width 0.512, realvec_dev) they stay connected only by the margin of 8-bit
+  rounding. With at least 1 px the mask is a connected 1–2 px wide line at any angle, for ground
+  truth and output alike (tested). ``min_width_px`` is a parameter; 0 reproduces the benchmark's
+  width literally.
 - **Coverage by supersampling**: a pixel's coverage is the fraction of ``s × s`` sub-pixel sample points
   (at the centres of an ``s × s`` grid in the pixel) that lie inside the union of capsules (a segment
   swept by a disc of radius width / 2). The union is exact (no double darkening where strokes overlap,
