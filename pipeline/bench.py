@@ -205,12 +205,30 @@ def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.
 
 def score_keypoints(pred: tuple[np.ndarray, np.ndarray], gt: dict[int, np.ndarray], height: int,
                     kcfg: dict) -> dict:
-    """Keypoint metrics via :mod:`stages.evaluate.keypoints` (written by the keypoint engineer)."""
-    try:
-        from stages.evaluate import keypoints as kpm
-    except ImportError:
-        return {}
-    return kpm.keypoint_scores(pred[0], pred[1], gt, height=height, **kcfg)
+    """Keypoint metrics (metrics.md §3) via :mod:`stages.evaluate.keypoints`.
+
+    ``kp_f1`` is the authors' F1 with every class pooled (radius ``radius_height_fraction`` x the image
+    height; the authors use their padded network input's height, a few pixels more), ``kp_f1_end``,
+    ``kp_f1_junc``, ``kp_f1_corner`` the same per class; ``kp_f1_1to1`` (with precision and recall)
+    the one-to-one F1 within ``one_to_one_radius_px``, ``kp_class_acc`` the classification accuracy on
+    the matched points, ``kp_f1_1to1_<class>`` the one-to-one F1 per class.
+    """
+    from stages.evaluate.keypoints import f1_authors, f1_authors_per_class, match_keypoints
+
+    names = {1: "end", 3: "junc", 5: "corner"}
+    gt_pts = np.concatenate([gt.get(t, np.zeros((0, 2))) for t in names]).reshape(-1, 2)
+    gt_types = np.concatenate([np.full(len(gt.get(t, ())), t) for t in names]).astype(np.int64)
+    pts, types = pred
+    rel = float(kcfg["radius_height_fraction"])
+    row = {"kp_f1": f1_authors(gt_pts, pts, height, rel)}
+    for t, f in f1_authors_per_class(gt_pts, gt_types, pts, types, height, rel).items():
+        row[f"kp_f1_{names[t]}"] = f
+    m = match_keypoints(gt_pts, gt_types, pts, types, float(kcfg["one_to_one_radius_px"]))
+    row.update(kp_f1_1to1=m.f1, kp_precision_1to1=m.precision, kp_recall_1to1=m.recall,
+               kp_class_acc=m.accuracy if m.tp else float("nan"))
+    for t in names:
+        row[f"kp_f1_1to1_{names[t]}"] = m.class_f1(t)
+    return row
 
 
 # -- scoring one case ----------------------------------------------------------------------------

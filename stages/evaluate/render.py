@@ -72,7 +72,7 @@ def overlay(
     for colour, c in zip(curve_colours(len(curves)), curves):
         p = np.asarray(c, dtype=np.float64).reshape(-1, 2) * scale
         # pixel (i, j) has its centre at (j + .5, i + .5) in curve coordinates
-        q = np.round(p - 0.5).astype(np.int64)
+        q = np.floor(p).astype(np.int64)
         if len(q) == 1:
             q = np.vstack([q, q])
         for a, b in zip(q[:-1], q[1:]):
@@ -81,7 +81,7 @@ def overlay(
     for name, pts in (markers or {}).items():
         colour = MARKER_COLOURS.get(name, (0, 0, 0))
         for x, y in np.asarray(pts, dtype=np.float64).reshape(-1, 2)[:, :2] * scale:
-            rr, cc, val = circle_perimeter_aa(int(round(y - 0.5)), int(round(x - 0.5)), marker_radius)
+            rr, cc, val = circle_perimeter_aa(int(np.floor(y)), int(np.floor(x)), marker_radius)
             _blend(img, rr, cc, val, colour)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 

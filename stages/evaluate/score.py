@@ -97,10 +97,11 @@ def fidelity_reference(input_ink: np.ndarray, params: RasterParams) -> np.ndarra
 
 
 def estimate_stroke_width(ink: np.ndarray) -> float:
-    """Typical stroke width of a binarised line drawing: ink area over skeleton length (pixels).
+    """Typical stroke width of a binarised line drawing (pixels), at least 1.
 
-    Used to set the topology tolerances of drawings without ground truth. Returns 1.0 for a blank
-    image.
+    Ink area over skeleton length, less 0.5 px: the ink threshold (25 % coverage) keeps about a
+    quarter pixel of each anti-aliased edge. Used to set the topology tolerances of drawings without
+    ground truth. Returns 1.0 for a blank image.
     """
     from skimage.morphology import skeletonize
 
@@ -108,7 +109,7 @@ def estimate_stroke_width(ink: np.ndarray) -> float:
     n_skel = int(skeletonize(ink).sum())
     if n_skel == 0:
         return 1.0
-    return max(1.0, float(ink.sum()) / n_skel)
+    return max(1.0, float(ink.sum()) / n_skel - 0.5)
 
 
 def score_topology(curves: Sequence[np.ndarray], gt_strokes: Sequence[np.ndarray] | None, width: float,
