@@ -1,0 +1,231 @@
+"""Allowed paths between key vertices over a covering subgraph (paper §4.3 "Enumerating allowed paths").
+
+For each pair of key vertices of a component's subgraph, the allowed paths are the simple paths
+between them that contain no other key vertex and take only allowed turns at vertices of valence ≥ 3
+(the Y-junction test, :func:`stages.topology.graph.turn_table`).  X and T junctions need no test:
+their two strokes are disjoint branches of the graph.
+
+The enumeration runs on the subgraph's *chains* (maximal runs of valence-2 vertices between
+"nodes": key vertices, vertices of subgraph valence ≠ 2, and valence-2 vertices whose only turn is
+forbidden), so its cost depends on the number of junctions, not of vertices.  Two safeguards keep it
+bounded on messy subgraphs: at most ``max_paths_per_pair`` (the shortest) per pair of key vertices, and
+a search budget per key vertex (best-first, so what a cut drops is the longest).  Any chain that no allowed path uses afterwards (a forbidden turn, or a
+cut budget) gets its non-key end nodes promoted to synthetic key vertices (type 0) and the
+enumeration is repeated, so the allowed paths always cover the whole subgraph.
+
+Pass-through (a choice beyond the paper, see the package docstring): a junction key vertex (type 3)
+of subgraph valence 2 — the keypoint of an X, or a T seen from its bar — is also passable: paths may
+end there *or* run straight through it (at most ``max_pass_through`` of them), so an X yields both
+its four half strokes and its two full strokes.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Chain:
+    """A maximal run of valence-2 subgraph vertices between two nodes, in one direction."""
+
+    start: int
+    end: int
+    vertices: list[int]        # start ... end
+    arcs: list[int]
+    length: float
+    uid: int                   # same for both directions
+    reverse: int = -1          # index of the opposite direction
+
+
+@dataclass
+class EnumerationResult:
+    paths: list[dict] = field(default_factory=list)   # {"vertices", "arcs", "through"}
+    promoted: list[int] = field(default_factory=list)  # vertices that became synthetic key vertices
+    budget_hit: bool = False
+
+
+def _turn_allowed(g, turn_ptr, turn_ok, a_in: int, a_out: int) -> bool:
+    v = g.indices[a_in]
+    return bool(turn_ok[turn_ptr[a_in] + (a_out - g.indptr[v])])
+
+
+def _chains(g, sub_arc: np.ndarray, nodes: set, arc_len: np.ndarray, vertices) -> tuple[list[Chain], dict]:
+    """Both directions of every chain; ``by_start[node]`` lists chain indices leaving a node."""
+    chains: list[Chain] = []
+    seen_arc = set()
+    uid = 0
+    for x in sorted(nodes):
+        for a in range(g.indptr[x], g.indptr[x + 1]):
+            if not sub_arc[a] or a in seen_arc:
+                continue
+            verts, arcs, length = [x], [a], arc_len[a]
+            cur = int(g.indices[a])
+            prev_arc = a
+            while cur not in nodes:
+                verts.append(cur)
+                nxt = -1
+                for b in range(g.indptr[cur], g.indptr[cur + 1]):
+                    if sub_arc[b] and b != g.arc_rev[prev_arc]:
+                        nxt = b
+                        break
+                if nxt < 0:                      # cannot happen: non-nodes have valence 2
+                    break
+                arcs.append(nxt)
+                length += arc_len[nxt]
+                prev_arc = nxt
+                cur = int(g.indices[nxt])
+            verts.append(cur)
+            seen_arc.update(arcs)
+            seen_arc.update(int(g.arc_rev[b]) for b in arcs)
+            fwd = Chain(x, cur, verts, arcs, float(length), uid)
+            bwd = Chain(cur, x, verts[::-1], [int(g.arc_rev[b]) for b in arcs[::-1]], float(length), uid)
+            fwd.reverse, bwd.reverse = len(chains) + 1, len(chains)
+            chains += [fwd, bwd]
+            uid += 1
+    by_start: dict[int, list[int]] = {}
+    for i, c in enumerate(chains):
+        by_start.setdefault(c.start, []).append(i)
+    return chains, by_start
+
+
+def _best_first_from(s: int, g, chains: list, by_start: dict, terminals: dict, through: set, gdeg,
+                     turn_ptr, turn_ok, max_pass_through: int, max_per_pair: int, max_steps: int,
+                     found: dict) -> bool:
+    """Allowed paths from key vertex ``s``, shortest first, into ``found`` (canonical vertex tuple →
+    (length, chain sequence, flipped)).  Partial paths are a tree of parent pointers; a pair of key
+    vertices stops collecting after ``max_per_pair`` paths.  Returns whether ``max_steps`` cut it."""
+    store: list[tuple[int, int, int]] = []          # (chain, parent entry, passes)
+    heap: list[tuple[float, int]] = []
+    for ci in by_start.get(s, []):
+        store.append((ci, -1, 0))
+        heapq.heappush(heap, (chains[ci].length, len(store) - 1))
+    per_pair: dict[int, int] = {}
+    steps = 0
+    while heap:
+        steps += 1
+        if steps > max_steps:
+            return True
+        length, nid = heapq.heappop(heap)
+        ci, parent, passes = store[nid]
+        y = chains[ci].end
+        seq, visited = [ci], {s}
+        q = parent
+        while q >= 0:
+            seq.append(store[q][0])
+            visited.add(chains[store[q][0]].end)
+            q = store[q][1]
+        if y in visited and y != s:
+            continue
+        cont = True
+        if y in terminals:
+            seq.reverse()
+            if per_pair.get(y, 0) < max_per_pair:
+                verts = [s]
+                for k in seq:
+                    verts += chains[k].vertices[1:]
+                key = min(tuple(verts), tuple(verts[::-1]))
+                if key not in found:
+                    found[key] = (length, tuple(seq), key != tuple(verts))
+                    per_pair[y] = per_pair.get(y, 0) + 1
+            cont = y in through and passes < max_pass_through and y != s
+            passes += 1
+        if not cont:
+            continue
+        last_arc = chains[ci].arcs[-1]
+        for cj in by_start.get(y, []):
+            if cj == chains[ci].reverse:
+                continue
+            if gdeg[y] >= 3 and not _turn_allowed(g, turn_ptr, turn_ok, last_arc, chains[cj].arcs[0]):
+                continue
+            store.append((cj, nid, passes))
+            heapq.heappush(heap, (length + chains[cj].length, len(store) - 1))
+    return False
+
+
+def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict, passable: set,
+                            turn_ptr, turn_ok, arc_len: np.ndarray, max_pass_through: int,
+                            max_paths_per_pair: int, max_steps: int, max_rounds: int = 20) -> EnumerationResult:
+    """Allowed paths of one component's subgraph.
+
+    Parameters
+    ----------
+    g : stages.topology.graph.WorkGraph
+    sub_edge : numpy.ndarray
+        bool (E,) edges of the covering subgraph.
+    comp : int
+        The component.
+    terminals : dict
+        Key vertices of the component (vertex → anything); synthetic key vertices promoted here are
+        added to it with value ``None``.
+    passable : set
+        Junction key vertices that paths may run through (valence 2 in the subgraph is checked here).
+    turn_ptr, turn_ok : numpy.ndarray
+        Y-junction turn table.
+    arc_len : numpy.ndarray
+        Arc lengths.
+    max_pass_through, max_paths_per_pair, max_steps : int
+        See ``conf/topology/default.yaml``.
+
+    Returns
+    -------
+    EnumerationResult
+    """
+    v0, v1 = int(g.comp_ptr[comp]), int(g.comp_ptr[comp + 1])
+    a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+    sub_arc = np.zeros(len(g.indices), bool)
+    sub_arc[a0:a1] = sub_edge[g.arc_edge[a0:a1]]
+    tails = np.repeat(np.arange(v0, v1), np.diff(g.indptr[v0:v1 + 1]))
+    sub_deg = np.bincount(tails[sub_arc[a0:a1]] - v0, minlength=v1 - v0)
+    in_sub = np.nonzero(sub_deg > 0)[0] + v0
+    gdeg = g.degree
+    result = EnumerationResult()
+    if len(in_sub) == 0:
+        return result
+
+    for _ in range(max_rounds):
+        nodes = set(int(v) for v in in_sub if sub_deg[v - v0] != 2 or v in terminals)
+        # Valence-2 vertices of a valence ≥ 3 graph vertex whose only turn is forbidden block paths.
+        for v in in_sub:
+            v = int(v)
+            if v in nodes or gdeg[v] < 3:
+                continue
+            a, b = [x for x in range(g.indptr[v], g.indptr[v + 1]) if sub_arc[x]]
+            if not _turn_allowed(g, turn_ptr, turn_ok, int(g.arc_rev[a]), b):
+                nodes.add(v)
+        through = {v for v in passable if v in terminals and sub_deg[v - v0] == 2}
+        chains, by_start = _chains(g, sub_arc, nodes, arc_len, in_sub)
+        found: dict[tuple, tuple] = {}
+        budget_hit = False
+        for s in sorted(terminals):
+            if s in nodes:
+                budget_hit |= _best_first_from(s, g, chains, by_start, terminals, through, gdeg, turn_ptr,
+                                               turn_ok, max_pass_through, max_paths_per_pair, max_steps, found)
+        # Keep the shortest few per pair of key vertices.
+        by_pair: dict[tuple, list] = {}
+        for key, (length, seq, flipped) in found.items():
+            by_pair.setdefault((min(key[0], key[-1]), max(key[0], key[-1])), []).append((length, key, seq, flipped))
+        paths = []
+        used_uid = set()
+        for pair in sorted(by_pair):
+            for length, key, seq, flipped in sorted(by_pair[pair], key=lambda x: (x[0], x[1]))[:max_paths_per_pair]:
+                arcs = [a for k in seq for a in chains[k].arcs]
+                if flipped:                                  # the key is the reversed walk
+                    arcs = [int(g.arc_rev[a]) for a in arcs[::-1]]
+                used_uid.update(chains[k].uid for k in seq)
+                paths.append({"vertices": list(key), "arcs": arcs,
+                              "through": [v for v in key[1:-1] if v in terminals]})
+        orphans = {c.uid: c for c in chains if c.uid not in used_uid}
+        promote = set()
+        for c in orphans.values():
+            promote.update(v for v in (c.start, c.end) if v not in terminals)
+        result.paths = paths
+        result.budget_hit = result.budget_hit or budget_hit
+        if not promote:
+            break
+        for v in sorted(promote):
+            terminals[v] = None
+            result.promoted.append(v)
+    return result

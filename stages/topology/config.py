@@ -1,0 +1,44 @@
+"""The topology stage's parameters, mirroring ``conf/topology/default.yaml`` one to one."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+from stages.errors import InputError
+
+
+@dataclass(frozen=True)
+class TopologyConfig:
+    """See ``conf/topology/default.yaml`` for the meaning and origin of every value."""
+
+    keypoint_radius_px: float
+    merge_graph_dist_px: float
+    steiner_method: str
+    coverage_margin_px: float
+    min_new_vertices: int
+    min_new_pixels: int
+    robust_far_px: float
+    robust_min_new_vertices: int
+    turn_probe_px: float
+    turn_min_cos: float
+    pass_through_junctions: bool
+    max_pass_through: int
+    max_paths_per_pair: int
+    max_enumeration_steps: int
+    min_component_vertices: int
+
+    @classmethod
+    def from_dict(cls, cfg: dict) -> "TopologyConfig":
+        """Build from the stage's config section; every key is required, unknown keys are errors."""
+        names = {f.name: f.type for f in fields(cls)}
+        missing = sorted(set(names) - set(cfg))
+        extra = sorted(set(cfg) - set(names))
+        if missing or extra:
+            raise InputError(f"topology config: missing keys {missing}, unknown keys {extra}")
+        casts = {"float": float, "int": int, "bool": bool, "str": str}
+        conf = cls(**{k: casts[str(t)](cfg[k]) for k, t in names.items()})
+        if conf.steiner_method not in ("mehlhorn", "kou"):
+            raise InputError(f"topology config: steiner_method must be 'mehlhorn' or 'kou', not {conf.steiner_method!r}")
+        if conf.min_new_vertices < 1 or conf.robust_min_new_vertices < 1:
+            raise InputError("topology config: min_new_vertices and robust_min_new_vertices must be ≥ 1")
+        return conf

@@ -1,0 +1,317 @@
+"""Topology extraction, per connected component of the drawing graph (paper §4.2–4.3).
+
+Steps, as in the paper's Fig. 8:
+
+1. key vertices (:mod:`.key_vertices`), moved onto their keypoints;
+2. a Steiner tree over them (:mod:`.steiner`);
+3. coverage extension — loop A: constrained shortest walks between key vertices that visit
+   ≥ ``min_new_vertices`` uncovered vertices and cover ≥ ``min_new_pixels`` new band pixels
+   (:mod:`.constrained_path`); loop B (robustness against missed keypoints): the uncovered vertex
+   farthest from the subgraph (> ``robust_far_px``) becomes a synthetic key vertex if its walk
+   visits ≥ ``robust_min_new_vertices`` uncovered vertices and covers new pixels;
+4. allowed paths between key vertices (:mod:`.allowed_paths`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from stages.topology.allowed_paths import enumerate_allowed_paths
+from stages.topology.config import TopologyConfig
+from stages.topology.constrained_path import constrained_walk
+from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
+from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, turn_table
+from stages.topology.key_vertices import find_key_vertices
+
+SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
+
+
+def _path_from_pred(pred: np.ndarray, v: int) -> list[int]:
+    out = [v]
+    while pred[out[-1]] >= 0:
+        out.append(int(pred[out[-1]]))
+    return out
+
+
+class _Extractor:
+    """State shared by the per-component steps (one drawing)."""
+
+    def __init__(self, conf: TopologyConfig, g: WorkGraph, mask: np.ndarray):
+        self.conf, self.g, self.mask = conf, g, mask
+        self.n = g.n_vertices
+        self.comp_of = np.repeat(np.arange(len(g.comp_ptr) - 1), np.diff(g.comp_ptr))
+        self.tails = g.arc_tail()
+        self.arc_key = self.tails * max(self.n, 1) + g.indices
+        self.sub_edge = np.zeros(len(g.edges), bool)
+        self.steiner_edge = np.zeros(len(g.edges), bool)
+        self.is_term = np.zeros(self.n, bool)
+        self.terminals: dict[int, dict[int, tuple[int, int]]] = {}
+        self.stats = {"loop_a_paths": 0, "loop_a_rejected": 0, "loop_b_paths": 0, "loop_b_rejected": 0,
+                      "lone_component_terminals": 0, "promoted_terminals": 0, "enumeration_budget_hit": 0}
+
+    # -- helpers ------------------------------------------------------------------------------
+    def edge_ids(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Edge ids of vertex pairs that are graph edges."""
+        a = np.searchsorted(self.arc_key, np.asarray(u, np.int64) * self.n + np.asarray(v, np.int64))
+        return self.g.arc_edge[a]
+
+    def local_csr(self, c: int) -> tuple[sp.csr_matrix, int]:
+        g = self.g
+        v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
+        a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+        csr = sp.csr_matrix((self.arc_len[a0:a1], g.indices[a0:a1] - v0, g.indptr[v0:v1 + 1] - a0),
+                            shape=(v1 - v0, v1 - v0))
+        return csr, v0
+
+    def add_terminal(self, c: int, v: int, label=SYNTHETIC) -> None:
+        self.terminals.setdefault(c, {})[int(v)] = label
+        self.is_term[v] = True
+
+    # -- pipeline -------------------------------------------------------------------------------
+    def prepare(self, points, types, roots) -> None:
+        conf, g = self.conf, self.g
+        for v, k, t in find_key_vertices(g, self.comp_of, points, types, roots, self.mask,
+                                         conf.keypoint_radius_px, conf.merge_graph_dist_px):
+            self.add_terminal(int(self.comp_of[v]), v, (k, t))
+            g.xy[v] = points[k]                     # trust the keypoint's position (paper §4.2)
+        self.arc_len = g.arc_length()
+        self.turn_ptr, self.turn_ok = turn_table(g, arc_motions(g, conf.turn_probe_px), conf.turn_min_cos)
+        self.pixel_xy, self.pixel_flat = band_pixels(self.mask)
+        pix, ver = edge_coverage(g.xy, g.width, g.edges, self.comp_of, self.pixel_xy, conf.coverage_margin_px)
+        self.cov = CoverageState(len(self.pixel_xy), self.n, pix, ver)
+
+    def component(self, c: int) -> list[dict]:
+        conf, g, cov = self.conf, self.g, self.cov
+        v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
+        if v1 - v0 < conf.min_component_vertices:
+            return []
+        csr, _ = self.local_csr(c)
+        cov.reset()
+        term = self.terminals.setdefault(c, {})
+        for v in term:
+            cov.add([], [v])
+        self._lone_terminals(c, csr, v0)
+        tree = self._steiner(c, csr, v0)
+        if len(tree):
+            eids = self.edge_ids(tree[:, 0], tree[:, 1])
+            self.sub_edge[eids] = True
+            self.steiner_edge[eids] = True
+            cov.add(eids, tree.ravel())
+        self._loop_a(c)
+        self._loop_b(c, csr, v0)
+        passable = {v for v, (k, t) in term.items() if t == 3} if conf.pass_through_junctions else set()
+        res = enumerate_allowed_paths(g, self.sub_edge, c, term, passable, self.turn_ptr, self.turn_ok,
+                                      self.arc_len, conf.max_pass_through, conf.max_paths_per_pair,
+                                      conf.max_enumeration_steps)
+        for v in res.promoted:
+            self.add_terminal(c, v)
+        self.stats["promoted_terminals"] += len(res.promoted)
+        self.stats["enumeration_budget_hit"] += int(res.budget_hit)
+        for p in res.paths:
+            p["component"] = c
+        return res.paths
+
+    def _lone_terminals(self, c: int, csr, v0: int) -> None:
+        """Components with < 2 key vertices: start from their farthest vertices (authors' rule).
+
+        No key vertex: the vertex farthest from the component's first one (a stroke tip, if any)
+        becomes the first terminal.  One terminal: the vertex farthest from it becomes the second, if
+        the path to it covers ≥ ``min_new_pixels`` new band pixels.
+        """
+        term = self.terminals[c]
+        if not term:
+            d = dijkstra(csr, directed=True, indices=0)
+            d[~np.isfinite(d)] = -1
+            s = int(np.argmax(d)) + v0
+            self.add_terminal(c, s)
+            self.cov.add([], [s])
+            self.stats["lone_component_terminals"] += 1
+        if len(term) == 1:
+            t = next(iter(term))
+            d, pred = dijkstra(csr, directed=True, indices=t - v0, return_predecessors=True)
+            d[~np.isfinite(d)] = -1
+            f = int(np.argmax(d))
+            if d[f] <= 0:
+                return
+            path = np.array(_path_from_pred(pred, f), np.int64) + v0
+            eids = self.edge_ids(path[:-1], path[1:])
+            if self.cov.new_pixels(eids) >= self.conf.min_new_pixels:
+                self.add_terminal(c, f + v0)
+                self.stats["lone_component_terminals"] += 1
+
+    def _steiner(self, c: int, csr, v0: int) -> np.ndarray:
+        from stages.topology.steiner import steiner_tree
+
+        term = np.array(sorted(self.terminals[c]), np.int64) - v0
+        return steiner_tree(csr, term, self.conf.steiner_method) + v0
+
+    def _accept(self, walk, uncovered: np.ndarray, need: int) -> tuple[bool, np.ndarray, np.ndarray]:
+        verts, arcs = walk
+        distinct = np.unique(verts[uncovered[verts]])
+        eids = np.unique(self.g.arc_edge[arcs])
+        ok = len(distinct) >= need and self.cov.new_pixels(eids) >= self.conf.min_new_pixels
+        return ok, distinct, eids
+
+    def _loop_a(self, c: int) -> None:
+        """Add cheapest walks between key vertices while they cover enough (paper: 'at least four')."""
+        conf, g, cov = self.conf, self.g, self.cov
+        v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
+        need = conf.min_new_vertices
+        ignored = np.zeros(self.n, bool)
+        while True:
+            unc = ~cov.vertex & ~ignored
+            if unc[v0:v1].sum() < need or len(self.terminals[c]) == 0:
+                return
+            walk = constrained_walk(g, self.arc_len, self.turn_ptr, self.turn_ok, c, unc, self.is_term,
+                                    self.is_term, need)
+            if walk is None:
+                return
+            ok, distinct, eids = self._accept(walk, unc, need)
+            if ok:
+                self.sub_edge[eids] = True
+                cov.add(eids, walk[0])
+                self.stats["loop_a_paths"] += 1
+            else:
+                # Their pixels are covered already (or the walk only counted them by circling):
+                # they no longer count, so the search moves on.
+                ignored[distinct] = True
+                self.stats["loop_a_rejected"] += 1
+
+    def _loop_b(self, c: int, csr, v0: int) -> None:
+        """Robustness loop: far uncovered vertices become synthetic key vertices (authors' loop B)."""
+        conf, g, cov = self.conf, self.g, self.cov
+        v1 = int(g.comp_ptr[c + 1])
+        rejected = np.zeros(v1 - v0, bool)
+        source = np.zeros(self.n, bool)
+        while True:
+            a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+            used = np.zeros(v1 - v0, bool)
+            tails = self.tails[a0:a1]
+            used[tails[self.sub_edge[g.arc_edge[a0:a1]]] - v0] = True
+            used[np.array([v - v0 for v in self.terminals[c]], np.int64)] = True
+            d, pred, _ = dijkstra(csr, directed=True, indices=np.nonzero(used)[0], min_only=True,
+                               return_predecessors=True)
+            cand = ~cov.vertex[v0:v1] & ~rejected & np.isfinite(d) & (d > conf.robust_far_px)
+            if not cand.any():
+                return
+            f = int(np.argmax(np.where(cand, d, -1.0)))
+            source[:] = False
+            source[f + v0] = True
+            unc = ~cov.vertex
+            walk = constrained_walk(g, self.arc_len, self.turn_ptr, self.turn_ok, c, unc, source,
+                                    self.is_term, conf.robust_min_new_vertices)
+            ok = False
+            if walk is not None:
+                ok, _, eids = self._accept(walk, unc, conf.robust_min_new_vertices)
+            if ok:
+                self.add_terminal(c, f + v0)
+                self.sub_edge[eids] = True
+                cov.add(eids, walk[0])
+                self.stats["loop_b_paths"] += 1
+            else:
+                rejected[_path_from_pred(pred, f)] = True
+                self.stats["loop_b_rejected"] += 1
+
+    def interest_distance(self) -> np.ndarray:
+        """Graph distance over the covering subgraphs to the nearest junction or key vertex."""
+        g = self.g
+        keep = self.sub_edge[g.arc_edge]
+        w = np.where(keep, self.arc_len, 0.0)
+        csr = sp.csr_matrix((w, g.indices, g.indptr), shape=(self.n, self.n))
+        csr.eliminate_zeros()
+        sub_deg = np.diff(csr.indptr)
+        src = np.nonzero((sub_deg >= 3) | self.is_term)[0]
+        if len(src) == 0:
+            return np.zeros(self.n)
+        return dijkstra(csr, directed=True, indices=src, min_only=True)
+
+
+def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
+                     vertex_root, edges, points: np.ndarray, types: np.ndarray) -> dict:
+    """Candidate paths of one drawing.
+
+    Parameters
+    ----------
+    conf : TopologyConfig
+    mask : numpy.ndarray
+        bool (H, W) narrow band.
+    roots : numpy.ndarray
+        complex (H, W, 2) frame-field roots.
+    vertex_xy, vertex_width, vertex_root, edges
+        The graph artifact's arrays.
+    points, types : numpy.ndarray
+        Keypoints (x, y) and their codes.
+
+    Returns
+    -------
+    dict
+        ``paths`` (list of dicts, see stages/INTERFACES.md), ``key_vertices``, ``steiner_edges``,
+        ``steiner_segments`` (S, 4), ``coverage`` (list of flat pixel-index arrays), ``counts``,
+        ``timings``.
+    """
+    t0 = time.perf_counter()
+    timings = {}
+    g = build_work_graph(vertex_xy, vertex_width, vertex_root, edges)
+    ex = _Extractor(conf, g, mask)
+    ex.prepare(np.asarray(points, np.float64).reshape(-1, 2), np.asarray(types).reshape(-1), roots)
+    timings["prepare_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    raw = []
+    n_comp = len(g.comp_ptr) - 1
+    for c in range(n_comp):
+        raw += ex.component(c)
+    timings["components_s"] = time.perf_counter() - t1
+    dist = ex.interest_distance()
+
+    paths, coverage = [], []
+    for pid, p in enumerate(raw):
+        vs = np.array(p["vertices"], np.int64)
+        c = p["component"]
+        term = ex.terminals[c]
+        ends = [term[int(vs[0])], term[int(vs[-1])]]
+        eids = ex.edge_ids(vs[:-1], vs[1:])
+        px = np.unique(gather(ex.cov.pix_flat, ex.cov.pix_off, eids))
+        coverage.append(ex.pixel_flat[px])
+        paths.append({
+            "id": pid, "component": int(c),
+            "vertices": g.orig[vs].tolist(),
+            "xy": g.xy[vs].tolist(),
+            "widths": g.width[vs].tolist(),
+            "interest_dist": np.where(np.isfinite(dist[vs]), dist[vs], 0.0).tolist(),
+            "end_types": [int(ends[0][1]), int(ends[1][1])],
+            "end_keypoints": [int(ends[0][0]), int(ends[1][0])],
+            "through_keypoints": [int(term[int(v)][0]) for v in p["through"]],
+            "length": float(np.hypot(*np.diff(g.xy[vs], axis=0).T).sum()),
+        })
+    key_vertices = [{"vertex": int(g.orig[v]), "keypoint": int(k), "type": int(t), "xy": g.xy[v].tolist(),
+                     "component": int(c)}
+                    for c in sorted(ex.terminals) for v, (k, t) in sorted(ex.terminals[c].items())]
+    st = g.edges[ex.steiner_edge]
+    covered = np.zeros(len(ex.pixel_flat), bool)
+    for c_px in coverage:
+        covered[np.searchsorted(ex.pixel_flat, c_px)] = True
+    sizes = np.diff(g.comp_ptr)
+    counts = {
+        "components": int(n_comp),
+        "components_processed": int((sizes >= conf.min_component_vertices).sum()),
+        "vertices": int(g.n_vertices), "edges": int(len(g.edges)),
+        "keypoints": int(len(points)),
+        "key_vertices": int(sum(1 for kv in key_vertices if kv["keypoint"] >= 0)),
+        "synthetic_key_vertices": int(sum(1 for kv in key_vertices if kv["keypoint"] < 0)),
+        "steiner_edges": int(len(st)),
+        "subgraph_edges": int(ex.sub_edge.sum()),
+        "candidates": len(paths),
+        "band_pixels": int(len(ex.pixel_flat)),
+        "band_pixels_covered": int(covered.sum()),
+        **ex.stats,
+    }
+    timings["total_s"] = time.perf_counter() - t0
+    return {"paths": paths, "key_vertices": key_vertices,
+            "steiner_edges": np.sort(g.orig[st], axis=1).tolist(),
+            "steiner_segments": np.concatenate([g.xy[st[:, 0]], g.xy[st[:, 1]]], axis=1) if len(st)
+            else np.zeros((0, 4)),
+            "coverage": coverage, "counts": counts, "timings": timings}

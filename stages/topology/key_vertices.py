@@ -1,0 +1,99 @@
+"""Keypoints → key vertices (paper §4.2 "Finding key vertices"; authors-implementation.md §5).
+
+For every keypoint and every graph component, the component's vertices near the keypoint are split
+into two classes by which of the keypoint pixel's two frame-field roots their own root is closer to
+(one class when the keypoint lies off the band).  Per class the nearest vertex within
+``keypoint_radius_px`` whose straight segment to the keypoint stays inside the band becomes a key
+vertex — so a keypoint on an X or T gets one key vertex on each stroke's branch.  When one keypoint
+gets two key vertices in the *same* component that are closer than ``merge_graph_dist_px`` along the
+graph, only the one nearer the keypoint is kept (they are near duplicates on one stroke).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+
+def segment_in_band(mask: np.ndarray, p: np.ndarray, q: np.ndarray, step: float = 0.25) -> bool:
+    """Whether every pixel the straight segment ``p → q`` (x, y) passes through is a band pixel."""
+    n = max(2, int(np.ceil(np.hypot(*(q - p)) / step)) + 1)
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    pts = p + t * (q - p)
+    j = np.floor(pts[:, 0]).astype(np.int64)
+    i = np.floor(pts[:, 1]).astype(np.int64)
+    h, w = mask.shape
+    if (i < 0).any() or (j < 0).any() or (i >= h).any() or (j >= w).any():
+        return False
+    return bool(mask[i, j].all())
+
+
+def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndarray, roots: np.ndarray,
+                      mask: np.ndarray, radius: float, merge_dist: float) -> list[tuple[int, int, int]]:
+    """Map keypoints to key vertices.
+
+    Parameters
+    ----------
+    g : stages.topology.graph.WorkGraph
+        Graph at the original vertex positions.
+    comp_of : numpy.ndarray
+        int64 (V,) component of every vertex.
+    points : numpy.ndarray
+        (N, 2) keypoints (x, y); ``types`` (N,) their codes 1/3/5.
+    roots : numpy.ndarray
+        complex (H, W, 2) frame-field roots.
+    mask : numpy.ndarray
+        bool (H, W) narrow band.
+    radius, merge_dist : float
+        ``keypoint_radius_px`` and ``merge_graph_dist_px``.
+
+    Returns
+    -------
+    list of (vertex, keypoint, type)
+        At most one entry per vertex: a vertex claimed by several keypoints keeps the nearest.
+    """
+    if g.n_vertices == 0 or len(points) == 0:
+        return []
+    tree = cKDTree(g.xy)
+    h, w = mask.shape
+    claims: dict[int, tuple[float, int, int]] = {}
+    csr = None
+    for k, (p, t) in enumerate(zip(np.asarray(points, np.float64), np.asarray(types))):
+        cand = np.array(tree.query_ball_point(p, radius), np.int64)
+        if len(cand) == 0:
+            continue
+        i, j = int(np.floor(p[1])), int(np.floor(p[0]))
+        kr = []
+        if 0 <= i < h and 0 <= j < w and mask[i, j]:
+            kr = [complex(r) / abs(r) for r in roots[i, j] if abs(r) > 1e-9]
+        if len(kr) >= 2:
+            align = np.abs(np.stack([(np.conj(g.root[cand]) * r).real for r in kr[:2]]))
+            cls = np.argmax(align, axis=0)
+        else:
+            cls = np.zeros(len(cand), np.int64)
+        d = np.hypot(*(g.xy[cand] - p).T)
+        chosen: dict[tuple[int, int], int] = {}
+        for idx in np.argsort(d, kind="stable"):
+            v = int(cand[idx])
+            key = (int(comp_of[v]), int(cls[idx]))
+            if key in chosen:
+                continue
+            if segment_in_band(mask, g.xy[v], p):
+                chosen[key] = v
+        by_comp: dict[int, list[int]] = {}
+        for (c, _), v in chosen.items():
+            by_comp.setdefault(c, []).append(v)
+        for c, vs in by_comp.items():
+            if len(vs) == 2:
+                v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
+                csr = g.csr() if csr is None else csr
+                sub = csr[v0:v1, v0:v1]
+                dd = dijkstra(sub, directed=True, indices=vs[0] - v0, limit=merge_dist)[vs[1] - v0]
+                if dd < merge_dist:
+                    vs = [min(vs, key=lambda v: np.hypot(*(g.xy[v] - p)))]
+            for v in vs:
+                dist = float(np.hypot(*(g.xy[v] - p)))
+                if v not in claims or dist < claims[v][0]:
+                    claims[v] = (dist, k, int(t))
+    return [(v, k, t) for v, (_, k, t) in sorted(claims.items())]
