@@ -1,0 +1,496 @@
+"""Clean-up of the cross-section graph and width smoothing (authors-implementation.md §4; B19 §A.3).
+
+Steps, in the order :func:`stages.graph.run` applies them:
+
+1. :func:`merge_close_vertices` — near-duplicate cross-sections.  Stations are placed per streamline
+   (:mod:`stages.graph.cross_section`), so where lanes start or end mid-stroke two cross-sections can
+   land a fraction of a pixel apart along the same bundle; joined by their shared streamlines they make
+   small triangles and ladders.  Adjacent vertices of the same root family closer than
+   ``merge_distance`` are merged (greedily, largest cross-section first, one level deep so chains do
+   not collapse transitively); the merged vertex keeps the larger cross-section's position, width and
+   root and the union of the members, and edges are rebuilt from the streamlines.  Not in the
+   reference, whose vertices sit only at streamline ends.
+2. :func:`remove_singular_branches` — ``contractSingularityBranches``: on a dangling chain (free end at
+   one side, a junction at the other) edges are deleted from the free end while the vertex there is
+   flagged *next to singularity*; the vertex left at the cut gets the flag.
+3. :func:`remove_small_components` — ``simpleThresholds``: a component goes if no vertex crosses more
+   than one streamline, or if its bounding box, padded by each vertex's half width, is smaller than
+   ``min_component_area`` px².  (The reference pads nothing, which drops long 1-px-thin axis-aligned
+   strokes whose box has zero area.)
+4. :func:`contract_thickness_loops` — ``contractLoops``: the shortest cycle through every edge not in
+   a BFS spanning forest is drawn as a polygon through its vertices; if it encloses at most
+   ``max_loop_background`` background pixels (pixel centres off the band) it is a thickness loop, not a
+   hole, and is contracted: of its edges only the paths (around the cycle, the shorter way) from its
+   *anchors* (vertices with edges off the cycle) to the cycle vertex nearest its centroid are kept.
+   Repeated until no cycle is contracted.  Real holes (the inside of an O) enclose many background
+   pixels and stay.
+5. :func:`smooth_widths` — the reference's width QP (Laplacian equations + data equations, weight 1)
+   solved as one sparse linear solve ``(λ² LᵀL + I) w = w_raw`` and clipped to the raw range (instead
+   of Gurobi with ±max bounds: the unconstrained optimum is a smoothing of the raw widths, so clipping
+   to their range only guards against round-off and never binds by more than that).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import scipy.sparse.linalg as spla
+
+from stages.graph.cross_section import streamline_edges
+
+
+def _adjacency(n: int, edges: np.ndarray) -> list[set]:
+    adj = [set() for _ in range(n)]
+    for a, b in edges:
+        adj[a].add(b)
+        adj[b].add(a)
+    return adj
+
+
+def _edges_from_adj(adj: list[set]) -> np.ndarray:
+    out = [(a, b) for a, nb in enumerate(adj) for b in nb if a < b]
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def merge_close_vertices(xy, root, member_vertex, member_curve, member_param, edges, distance, min_cos):
+    """Merge adjacent near-duplicate vertices (see module docstring, step 1).
+
+    Parameters
+    ----------
+    xy : numpy.ndarray
+        (V, 2) vertex positions.
+    root : numpy.ndarray
+        complex (V,) unit roots.
+    member_vertex, member_curve, member_param : numpy.ndarray
+        Crossings of every vertex.
+    edges : numpy.ndarray
+        (E, 2) streamline edges.
+    distance : float
+        Adjacent vertices closer than this (px) are merged.
+    min_cos : float
+        ... if their roots agree, ``|cos| ≥ min_cos``.
+
+    Returns
+    -------
+    keep : numpy.ndarray
+        int64 (V',) ids of the surviving vertices (into the input arrays).
+    member_vertex : numpy.ndarray
+        Crossings re-assigned to the new vertex ids ``0..V'-1``.
+    """
+    n = len(xy)
+    counts = np.bincount(member_vertex, minlength=n)
+    if len(edges):
+        d = np.linalg.norm(xy[edges[:, 0]] - xy[edges[:, 1]], axis=1)
+        c = np.abs((root[edges[:, 0]] * np.conj(root[edges[:, 1]])).real)
+        close = edges[(d < distance) & (c >= min_cos)]
+    else:
+        close = np.zeros((0, 2), np.int64)
+    adj = _adjacency(n, close)
+    rep = np.full(n, -1, np.int64)
+    for v in np.argsort(-counts, kind="stable"):
+        if rep[v] >= 0:
+            continue
+        rep[v] = v
+        for u in adj[v]:
+            if rep[u] < 0:
+                rep[u] = v
+    keep = np.unique(rep)
+    new_id = np.full(n, -1, np.int64)
+    new_id[keep] = np.arange(len(keep))
+    return keep, new_id[rep[member_vertex]]
+
+
+def remove_singular_branches(n: int, edges: np.ndarray, flags: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Trim dangling chains that run into a singularity (module docstring, step 2).
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        The remaining edges.
+    flags : numpy.ndarray
+        Updated flags (bit 0 set on the vertex left at each cut).
+    removed : int
+        Number of edges deleted.
+    """
+    adj = _adjacency(n, edges)
+    flags = flags.copy()
+    near = (flags & 1).astype(bool)
+    removed = 0
+    for v0 in range(n):
+        if len(adj[v0]) != 1 or not near[v0]:
+            continue
+        # the chain must hang off a junction
+        prev, cur = v0, next(iter(adj[v0]))
+        while len(adj[cur]) == 2:
+            prev, cur = cur, next(u for u in adj[cur] if u != prev)
+            if cur == v0:
+                break
+        if len(adj[cur]) < 3:
+            continue
+        cur = v0
+        while near[cur] and len(adj[cur]) == 1:
+            u = next(iter(adj[cur]))
+            if len(adj[u]) > 2:
+                break  # never cut into the junction itself
+            adj[cur].discard(u)
+            adj[u].discard(cur)
+            removed += 1
+            cur = u
+        flags[cur] |= 1
+    return _edges_from_adj(adj), flags, removed
+
+
+def remove_small_components(xy, width, edges, crossing_count, min_area) -> np.ndarray:
+    """Vertices to keep after dropping insignificant components (module docstring, step 3).
+
+    Parameters
+    ----------
+    xy, width : numpy.ndarray
+        Vertex positions and widths.
+    edges : numpy.ndarray
+        (E, 2).
+    crossing_count : numpy.ndarray
+        Number of streamlines in each vertex's cross-section.
+    min_area : float
+        Components whose padded bounding box is smaller (px²) are dropped.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (V,) mask of the vertices to keep.
+    """
+    n = len(xy)
+    if n == 0:
+        return np.zeros(0, bool)
+    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    ncomp, lab = csgraph.connected_components(g, directed=False)
+    r = np.maximum(width, 0) / 2
+    lo_x = np.full(ncomp, np.inf); hi_x = np.full(ncomp, -np.inf)
+    lo_y = np.full(ncomp, np.inf); hi_y = np.full(ncomp, -np.inf)
+    np.minimum.at(lo_x, lab, xy[:, 0] - r); np.maximum.at(hi_x, lab, xy[:, 0] + r)
+    np.minimum.at(lo_y, lab, xy[:, 1] - r); np.maximum.at(hi_y, lab, xy[:, 1] + r)
+    area = (hi_x - lo_x) * (hi_y - lo_y)
+    many = np.zeros(ncomp, bool)
+    np.logical_or.at(many, lab, crossing_count > 1)
+    good = many & (area >= min_area)
+    return good[lab]
+
+
+def _shortest_cycle_path(adj, a, b, limit):
+    """BFS path a → b avoiding the edge (a, b), at most ``limit`` vertices; None if none."""
+    parent = {a: -1}
+    q = deque([a])
+    while q:
+        v = q.popleft()
+        for u in adj[v]:
+            if u in parent or (v == a and u == b):
+                continue
+            parent[u] = v
+            if u == b:
+                path = [b]
+                while path[-1] != a:
+                    path.append(parent[path[-1]])
+                return path[::-1]
+            q.append(u)
+        if len(parent) > limit:
+            return None
+    return None
+
+
+def _background_inside(poly_xy: np.ndarray, band: np.ndarray) -> int:
+    from skimage.draw import polygon
+
+    # skimage puts pixel centres at integer coordinates, ours at +0.5
+    rr, cc = polygon(poly_xy[:, 1] - 0.5, poly_xy[:, 0] - 0.5, shape=band.shape)
+    return int((~band[rr, cc]).sum())
+
+
+def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices):
+    """Contract cycles enclosing at most ``max_background`` background pixels (module docstring, step 4).
+
+    Parameters
+    ----------
+    xy : numpy.ndarray
+        (V, 2) vertex positions.
+    edges : numpy.ndarray
+        (E, 2).
+    band : numpy.ndarray
+        bool (H, W) the narrow band.
+    max_background : int
+        Largest number of enclosed background pixels of a contractible loop (reference 4).
+    max_cycle_vertices : int
+        Cycles are searched by BFS up to this many visited vertices (bounds the cost on huge rings,
+        which are real holes anyway).
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        The remaining edges.
+    contracted : int
+        Number of loops contracted.
+    """
+    n = len(xy)
+    adj = _adjacency(n, edges)
+    contracted = 0
+    # enclosed background of a cycle does not change once computed; remember the holes
+    holes = set()
+    while True:
+        changed = False
+        # non-tree edges of a BFS spanning forest, each closing one fundamental cycle
+        seen = np.zeros(n, bool)
+        tree = set()
+        for s in range(n):
+            if seen[s] or not adj[s]:
+                continue
+            seen[s] = True
+            q = deque([s])
+            while q:
+                v = q.popleft()
+                for u in adj[v]:
+                    if not seen[u]:
+                        seen[u] = True
+                        tree.add((min(u, v), max(u, v)))
+                        q.append(u)
+        extra = [(a, b) for a, nb in enumerate(adj) for b in nb if a < b and (a, b) not in tree]
+        for a, b in extra:
+            if b not in adj[a]:
+                continue
+            path = _shortest_cycle_path(adj, a, b, max_cycle_vertices)
+            if path is None:
+                continue
+            key = frozenset(path)
+            if key in holes:
+                continue
+            if _background_inside(xy[path], band) > max_background:
+                holes.add(key)
+                continue
+            _contract(adj, xy, path)
+            contracted += 1
+            changed = True
+        if not changed:
+            break
+    return _edges_from_adj(adj), contracted
+
+
+def _contract(adj, xy, cycle):
+    """Keep only the paths from the cycle's anchors to its most central vertex (reference ``contract_edges``)."""
+    m = len(cycle)
+    on = set(cycle)
+    cyc_edges = [(cycle[k], cycle[(k + 1) % m]) for k in range(m)]
+    anchors = [k for k, v in enumerate(cycle) if any(u not in on for u in adj[v])]
+    centre = int(np.argmin(np.linalg.norm(xy[cycle] - xy[cycle].mean(axis=0), axis=1)))
+    seg = np.linalg.norm(xy[[e[0] for e in cyc_edges]] - xy[[e[1] for e in cyc_edges]], axis=1)
+    keep = np.zeros(m, bool)  # keep[k]: edge cycle[k] — cycle[k+1]
+    if not anchors:
+        # an isolated small loop: open it opposite its centre, leaving a path
+        keep[:] = True
+        keep[(centre + m // 2) % m] = False
+    for k in anchors:
+        fwd = [(k + t) % m for t in range((centre - k) % m)]          # edges k → centre going forward
+        bwd = [(centre + t) % m for t in range((k - centre) % m)]     # edges centre → k going forward
+        if seg[fwd].sum() <= seg[bwd].sum():
+            keep[fwd] = True
+        else:
+            keep[bwd] = True
+    for k, (a, b) in enumerate(cyc_edges):
+        if not keep[k]:
+            adj[a].discard(b)
+            adj[b].discard(a)
+
+
+def smooth_widths(width_raw: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
+    """Laplacian least-squares smoothing of the widths (module docstring, step 5).
+
+    Minimises ``weight² ‖L w‖² + ‖w − width_raw‖²`` with ``L`` the graph Laplacian.
+
+    Parameters
+    ----------
+    width_raw : numpy.ndarray
+        (V,) raw cross-section widths.
+    edges : numpy.ndarray
+        (E, 2).
+    weight : float
+        Weight of the Laplacian equations relative to the data equations (reference 1).
+
+    Returns
+    -------
+    numpy.ndarray
+        (V,) smoothed widths, within the range of ``width_raw``.
+    """
+    n = len(width_raw)
+    if n == 0:
+        return width_raw.copy()
+    adj = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                        shape=(n, n)).tocsr()
+    adj.data[:] = 1.0
+    lap = sp.diags(np.asarray(adj.sum(axis=1)).ravel()) - adj
+    a = (weight ** 2) * (lap.T @ lap) + sp.identity(n)
+    w = spla.spsolve(a.tocsc(), width_raw.astype(np.float64))
+    return np.clip(w, width_raw.min(), width_raw.max())
+
+
+def _leaf_chain(adj, v):
+    """From leaf ``v`` along degree-2 vertices: (chain vertices from v, the vertex where it stops)."""
+    chain = [v]
+    prev, cur = v, next(iter(adj[v]))
+    while len(adj[cur]) == 2:
+        chain.append(cur)
+        prev, cur = cur, next(u for u in adj[cur] if u != prev)
+        if cur == v:
+            return chain, -1
+    return chain, cur
+
+
+def prune_covered_spurs(xy, width, strength, edges, max_length, min_covered):
+    """Delete short dangling branches lying inside the stroke discs of the rest of the graph.
+
+    B19's ``removeBranchesFilter1``: a *spur* is a chain from a leaf to the first vertex of degree ≥ 3
+    (the junction), at most ``max_length`` px long.  Its vertices are covered when they lie within
+    ``max(width/2, 0.5)`` of a vertex not on the spur; a spur with at least ``min_covered`` of its
+    vertices covered (or at most one uncovered) is thickness, not a stroke.  At each junction only one
+    spur goes per round (the best covered, then the weakest by streamline count, then the shortest), so
+    the two ragged ends of a stroke's tip never both vanish; rounds repeat until nothing changes.
+
+    Parameters
+    ----------
+    xy, width : numpy.ndarray
+        Vertex positions and widths.
+    strength : numpy.ndarray
+        Streamlines per vertex (tie-breaking).
+    edges : numpy.ndarray
+        (E, 2).
+    max_length : float
+        Longest spur (px), including the edge into the junction.
+    min_covered : float
+        Covered fraction from which a spur is deleted.
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        Remaining edges (spur vertices are left isolated).
+    removed : int
+        Number of spurs deleted.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xy)
+    adj = _adjacency(n, edges)
+    if n == 0:
+        return edges, 0
+    tree = cKDTree(xy)
+    radius = np.maximum(width / 2, 0.5)
+    rmax = float(radius.max())
+    removed = 0
+    while True:
+        best = {}
+        for v in range(n):
+            if len(adj[v]) != 1:
+                continue
+            chain, j = _leaf_chain(adj, v)
+            if j < 0 or len(adj[j]) < 3:
+                continue
+            pts = xy[chain + [j]]
+            length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+            if length > max_length:
+                continue
+            on = set(chain)
+            covered = 0
+            for p in chain:
+                near = tree.query_ball_point(xy[p], rmax)
+                if any(q not in on and np.hypot(*(xy[q] - xy[p])) <= radius[q] for q in near):
+                    covered += 1
+            frac = covered / len(chain)
+            if frac < min_covered and len(chain) - covered > 1:
+                continue
+            key = (-frac, int(strength[chain].sum()), length)
+            if j not in best or key < best[j][0]:
+                best[j] = (key, chain)
+        if not best:
+            break
+        for j, (_, chain) in best.items():
+            for a, b in zip(chain, chain[1:] + [j]):
+                adj[a].discard(b)
+                adj[b].discard(a)
+            removed += 1
+    return _edges_from_adj(adj), removed
+
+
+def join_singular_ends(xy, edges, flags, band, max_distance, min_hops):
+    """Join dangling ends next to singularities across them (B19 ``connectStuffAroundSingularities``).
+
+    Each leaf flagged *next to singularity* is joined to the nearest other flagged vertex within
+    ``max_distance`` px that lies ahead of it (the segment continues the leaf's edge direction), whose
+    straight segment stays in the band, and that is more than ``min_hops`` edges away in the graph (or in
+    another component).  This is what gives a Y junction, where the field has a singularity and the
+    traces stop, its valence-3 vertex.
+
+    Returns
+    -------
+    new_edges : numpy.ndarray
+        (K, 2) the added edges (``edge_curve`` −1 in the artifact).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xy)
+    adj = _adjacency(n, edges)
+    flagged = np.flatnonzero(flags & 1)
+    if len(flagged) < 2:
+        return np.zeros((0, 2), np.int64)
+    tree = cKDTree(xy[flagged])
+    added = []
+    for v in flagged:
+        if len(adj[v]) != 1:
+            continue
+        u = next(iter(adj[v]))
+        out = xy[v] - xy[u]
+        cands = []
+        for k in tree.query_ball_point(xy[v], max_distance):
+            q = flagged[k]
+            if q == v or q in adj[v]:
+                continue
+            d = xy[q] - xy[v]
+            if float(d @ out) <= 0:
+                continue
+            cands.append((float(np.hypot(*d)), q))
+        for _, q in sorted(cands):
+            if not _segment_in_band(xy[v], xy[q], band):
+                continue
+            if _hops_within(adj, v, q, min_hops):
+                continue
+            added.append((min(v, q), max(v, q)))
+            adj[v].add(q)
+            adj[q].add(v)
+            break
+    return np.array(sorted(set(added)), dtype=np.int64).reshape(-1, 2)
+
+
+def _segment_in_band(a, b, band):
+    k = max(2, int(np.ceil(np.hypot(*(b - a)) / 0.25)) + 1)
+    t = np.linspace(0, 1, k)[:, None]
+    p = a + t * (b - a)
+    i = np.floor(p[:, 1]).astype(int)
+    j = np.floor(p[:, 0]).astype(int)
+    h, w = band.shape
+    if (i < 0).any() or (j < 0).any() or (i >= h).any() or (j >= w).any():
+        return False
+    return bool(band[i, j].all())
+
+
+def _hops_within(adj, a, b, hops):
+    """Whether b is at most ``hops`` edges from a."""
+    seen = {a}
+    frontier = [a]
+    for _ in range(hops):
+        nxt = []
+        for v in frontier:
+            for u in adj[v]:
+                if u == b:
+                    return True
+                if u not in seen:
+                    seen.add(u)
+                    nxt.append(u)
+        frontier = nxt
+    return False

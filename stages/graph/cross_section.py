@@ -1,0 +1,436 @@
+"""Cross-sections of the traced curves: the graph's vertices and edges (paper §4.1, Fig. 7; B19 §A.3).
+
+A *cross-section* through a point ``p`` of streamline ``k`` is the orthogonal trajectory of the field
+through ``p``: traced (Euler, same step) along ``i·f`` where ``f`` is the root family ``k`` follows,
+continuing at each step with the perpendicular best aligned with the previous heading.  Every streamline
+segment it crosses is tested for the *same root family*: its tangent must be closer (|cos|) to the
+followed root than to the other root at that point, which excludes the curves of a crossing stroke.
+Crossings in singular pixels are skipped.  Sorted by arc length along the cross-section, the crossings
+are cut at the first gap larger than ``max_gap`` on each side of ``p``; the contiguous run around ``p``
+is the vertex.  A cross-section stops on leaving the band, on a singular pixel (the vertex is then
+flagged *next to singularity* if that happened within ``max_gap`` of the run), after ``max_gap`` px
+without a crossing, or at ``max_section_length`` px.
+
+Vertex attributes:
+
+* ``xy``: the midpoint (by arc length) of the run along the cross-section.  The paper says "centroid
+  of the cross-section"; the mean of the crossing points (the reference) is pulled towards the side
+  where lanes happen to be denser (lanes are ~0.1 px apart where the seeds' offsets are dense and up
+  to 1 px apart where the stroke is axis-aligned), the midpoint of the segment is not.
+* ``width``: the cross-section diameter (first to last crossing) **plus one lane spacing**.  The
+  reference's diameter alone is 0 for a cross-section crossing a single streamline and one pixel short
+  on an axis-aligned stroke (its lanes sit at the pixel centres, 1 px apart, so the outer half pixel on
+  each side is never crossed).  Each crossing stands for the strip of half a lane spacing on either
+  side, so we add the mean gap between consecutive crossings (capped at 1 px; 1 px for a single
+  crossing).  On dense lanes this adds ~0.1 px, on an axis-aligned 3 px stroke it gives exactly 3.
+* ``root``: the followed root at ``p`` (unit, oriented along streamline ``k``).
+
+**Where cross-sections are taken.**  The reference takes one at each end of every streamline and
+nowhere else.  Our streamlines are long (a straight stroke gives lanes running its whole length), so
+that would leave a stroke's graph with vertices only near its ends.  Instead stations are placed
+along the streamlines so that every sample of every streamline is within about
+``cover_factor · station_spacing`` of a cross-section that contains it: streamlines are visited
+longest first; along each, at the first sample not yet covered, a cross-section is taken
+``station_spacing/2`` further on (or at the curve's end) and marks all its crossings (on every member
+streamline) as covered.  Short uncovered gaps (< ``min_station_gap``) between covered stretches are
+skipped.  One cross-section thus serves the whole bundle, and a stroke gets a chain of vertices about
+``station_spacing`` apart.
+
+**Edges** join vertices consecutive along a streamline (sorted by the crossing parameter on it); the
+edge keeps the id of (one) streamline it came from.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from stages.graph.trace import choose_direction, coeffs_at, quartic_roots, _grow_f
+
+
+@njit(cache=True)
+def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g, f, h, max_gap, max_steps,
+             tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y):
+    """One cross-section through sample ``g`` of curve ``k`` following unit root ``f``.
+
+    Fills the work buffers (crossings ``cr_*``; the cross-section polyline ``poly_*`` for both sides,
+    side +1 first) and returns ``(n_crossings, n_poly_plus, n_poly_minus, sing_plus, sing_minus)`` where
+    ``sing_*`` is the arc length at which that side stopped on a singular pixel (inf if it did not).
+    """
+    H, W = band.shape
+    ncr = 0
+    x0 = sx[g]
+    y0 = sy[g]
+    i_seed = g - c_start[k]
+    # the seed crossing itself
+    cr_curve[0] = k
+    cr_param[0] = i_seed
+    cr_s[0] = 0.0
+    ncr = 1
+    npoly = np.zeros(2, np.int64)
+    sing = np.full(2, np.inf)
+    cap_cr = len(cr_curve)
+    cap_poly = poly_s.shape[1]
+    for side in range(2):
+        sgn = 1.0 if side == 0 else -1.0
+        px = x0
+        py = y0
+        d = 1j * f * sgn
+        s = 0.0
+        last = 0.0
+        poly_s[side, 0] = 0.0
+        poly_x[side, 0] = px
+        poly_y[side, 0] = py
+        npl = 1
+        for _ in range(max_steps):
+            a0, a2 = coeffs_at(c0, c2, px, py)
+            u, v = quartic_roots(a0, a2)
+            nd, fam, ok = choose_direction(1j * u, 1j * v, d, tie)
+            if not ok:
+                break
+            # followed root and the other one here, as unit vectors
+            if fam == 0:
+                fr = u
+                gr = v
+            else:
+                fr = v
+                gr = u
+            nf = abs(fr)
+            ng = abs(gr)
+            fr = fr / nf if nf > 0 else 0j
+            gr = gr / ng if ng > 0 else 0j
+            qx = px + h * nd.real
+            qy = py + h * nd.imag
+            if qx < 0 or qy < 0 or qx >= W or qy >= H or not band[int(qy), int(qx)]:
+                break
+            if singular[int(qy), int(qx)]:
+                sing[side] = s
+                break
+            # streamline samples whose segment may cross [p, q] lie within h + h of p
+            r = 2.0 * h
+            i_lo = max(0, int(min(py, qy) - r))
+            i_hi = min(H - 1, int(max(py, qy) + r))
+            j_lo = max(0, int(min(px, qx) - r))
+            j_hi = min(W - 1, int(max(px, qx) + r))
+            ex = qx - px
+            ey = qy - py
+            for ii in range(i_lo, i_hi + 1):
+                for jj in range(j_lo, j_hi + 1):
+                    t = head[ii * W + jj]
+                    while t >= 0:
+                        c = sc[t]
+                        li = t - c_start[c]
+                        if li + 1 < c_len[c]:
+                            ax = sx[t]
+                            ay = sy[t]
+                            bx = sx[t + 1] - ax
+                            by = sy[t + 1] - ay
+                            den = ex * by - ey * bx
+                            if den != 0.0:
+                                wx = ax - px
+                                wy = ay - py
+                                a = (wx * by - wy * bx) / den
+                                b = (wx * ey - wy * ex) / den
+                                if 0.0 <= a < 1.0 and 0.0 <= b < 1.0 and not (
+                                        c == k and abs(li + b - i_seed) < 1.5):
+                                    nb = math.sqrt(bx * bx + by * by)
+                                    tcx = bx / nb
+                                    tcy = by / nb
+                                    cf = abs(tcx * fr.real + tcy * fr.imag)
+                                    cg = abs(tcx * gr.real + tcy * gr.imag)
+                                    X = px + a * ex
+                                    Y = py + a * ey
+                                    if cf >= cg and not singular[int(Y), int(X)] and ncr < cap_cr:
+                                        cr_curve[ncr] = c
+                                        cr_param[ncr] = li + b
+                                        cr_s[ncr] = sgn * (s + a * h)
+                                        ncr += 1
+                                        if s + a * h > last:
+                                            last = s + a * h
+                        t = nxt[t]
+            s += h
+            px = qx
+            py = qy
+            d = nd
+            if npl < cap_poly:
+                poly_s[side, npl] = s
+                poly_x[side, npl] = px
+                poly_y[side, npl] = py
+                npl += 1
+            if s - last > max_gap:
+                break
+        npoly[side] = npl
+    return ncr, npoly[0], npoly[1], sing[0], sing[1]
+
+
+@njit(cache=True)
+def _point_at(poly_s, poly_x, poly_y, npoly, s):
+    side = 0 if s >= 0 else 1
+    a = abs(s)
+    n = npoly[side]
+    for q in range(1, n):
+        if poly_s[side, q] >= a:
+            s0 = poly_s[side, q - 1]
+            t = (a - s0) / max(poly_s[side, q] - s0, 1e-12)
+            return (poly_x[side, q - 1] + t * (poly_x[side, q] - poly_x[side, q - 1]),
+                    poly_y[side, q - 1] + t * (poly_y[side, q] - poly_y[side, q - 1]))
+    return poly_x[side, n - 1], poly_y[side, n - 1]
+
+
+@njit(cache=True)
+def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, head, nxt, order, h, spacing,
+                    cover, min_gap, max_gap, max_steps, ambiguity, tie):
+    H, W = band.shape
+    n_samples = len(sx)
+    covered = np.zeros(n_samples, np.bool_)
+    half = max(1, spacing // 2)
+    vcap = 1024
+    v_xy = np.empty((vcap, 2), np.float64)
+    v_width = np.empty(vcap, np.float64)
+    v_root = np.empty(vcap, np.complex128)
+    v_flag = np.empty(vcap, np.uint8)
+    v_seed = np.empty(vcap, np.int64)
+    nv = 0
+    mcap = 8192
+    m_vertex = np.empty(mcap, np.int64)
+    m_curve = np.empty(mcap, np.int64)
+    m_param = np.empty(mcap, np.float64)
+    nm = 0
+    cr_cap = 4096
+    cr_curve = np.empty(cr_cap, np.int64)
+    cr_param = np.empty(cr_cap, np.float64)
+    cr_s = np.empty(cr_cap, np.float64)
+    poly_s = np.empty((2, max_steps + 2), np.float64)
+    poly_x = np.empty((2, max_steps + 2), np.float64)
+    poly_y = np.empty((2, max_steps + 2), np.float64)
+    n_fail = 0
+    for k in order:
+        st = c_start[k]
+        L = c_len[k]
+        i = 0
+        while i < L:
+            if covered[st + i]:
+                i += 1
+                continue
+            e = i
+            while e < L and not covered[st + e]:
+                e += 1
+            run = e - i
+            if i > 0 and e < L and run < min_gap:
+                for q in range(i, e):
+                    covered[st + q] = True
+                i = e
+                continue
+            if e < L:
+                j = i + min(half, (run - 1) // 2)
+            else:
+                j = min(i + half, L - 1)
+            g = st + j
+            made = False
+            x0 = sx[g]
+            y0 = sy[g]
+            if not singular[int(y0), int(x0)]:
+                a0, a2 = coeffs_at(c0, c2, x0, y0)
+                u, v = quartic_roots(a0, a2)
+                nu = abs(u)
+                nvv = abs(v)
+                if nu > 1e-12 and nvv > 1e-12:
+                    u = u / nu
+                    v = v / nvv
+                    t0 = tx[g] + 1j * ty[g]
+                    cu = u.real * t0.real + u.imag * t0.imag
+                    cv = v.real * t0.real + v.imag * t0.imag
+                    if abs(abs(cu) - abs(cv)) >= ambiguity:
+                        if abs(cu) > abs(cv):
+                            f = u if cu > 0 else -u
+                        else:
+                            f = v if cv > 0 else -v
+                        ncr, np0, np1, sg0, sg1 = _section(
+                            c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g, f, h,
+                            max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y)
+                        srt = np.argsort(cr_s[:ncr])
+                        pos0 = 0
+                        for q in range(ncr):
+                            if srt[q] == 0:
+                                pos0 = q
+                        lo = pos0
+                        while lo > 0 and cr_s[srt[lo]] - cr_s[srt[lo - 1]] <= max_gap:
+                            lo -= 1
+                        hi = pos0
+                        while hi < ncr - 1 and cr_s[srt[hi + 1]] - cr_s[srt[hi]] <= max_gap:
+                            hi += 1
+                        s_lo = cr_s[srt[lo]]
+                        s_hi = cr_s[srt[hi]]
+                        nrun = hi - lo + 1
+                        diam = s_hi - s_lo
+                        pad = 1.0 if nrun == 1 else min(1.0, diam / (nrun - 1))
+                        npoly = np.empty(2, np.int64)
+                        npoly[0] = np0
+                        npoly[1] = np1
+                        cx, cy = _point_at(poly_s, poly_x, poly_y, npoly, 0.5 * (s_lo + s_hi))
+                        flag = 0
+                        if sg0 - s_hi <= max_gap or sg1 + s_lo <= max_gap:
+                            flag = 1
+                        if nv >= vcap:
+                            vcap *= 2
+                            nxy = np.empty((vcap, 2), np.float64)
+                            nxy[:nv] = v_xy[:nv]
+                            v_xy = nxy
+                            v_width = _grow_f(v_width, vcap)
+                            v_root = _grow_f(v_root, vcap)
+                            v_flag = _grow_f(v_flag, vcap)
+                            v_seed = _grow_f(v_seed, vcap)
+                        v_xy[nv, 0] = cx
+                        v_xy[nv, 1] = cy
+                        v_width[nv] = diam + pad
+                        v_root[nv] = f
+                        v_flag[nv] = flag
+                        v_seed[nv] = g
+                        for q in range(lo, hi + 1):
+                            r = srt[q]
+                            c = cr_curve[r]
+                            p = cr_param[r]
+                            if nm >= mcap:
+                                mcap *= 2
+                                m_vertex = _grow_f(m_vertex, mcap)
+                                m_curve = _grow_f(m_curve, mcap)
+                                m_param = _grow_f(m_param, mcap)
+                            m_vertex[nm] = nv
+                            m_curve[nm] = c
+                            m_param[nm] = p
+                            nm += 1
+                            a = max(0, int(math.floor(p - cover)))
+                            b = min(c_len[c] - 1, int(math.ceil(p + cover)))
+                            for z in range(a, b + 1):
+                                covered[c_start[c] + z] = True
+                        nv += 1
+                        made = True
+            if not made:
+                n_fail += 1
+            # always make progress along this curve, even where no cross-section could be taken
+            for q in range(i, min(L, j + half + 1)):
+                covered[st + q] = True
+    return (v_xy[:nv].copy(), v_width[:nv].copy(), v_root[:nv].copy(), v_flag[:nv].copy(), v_seed[:nv].copy(),
+            m_vertex[:nm].copy(), m_curve[:nm].copy(), m_param[:nm].copy(), n_fail)
+
+
+@dataclass
+class RawGraph:
+    """Cross-section vertices and streamline edges before the clean-up.
+
+    Attributes
+    ----------
+    xy : numpy.ndarray
+        float64 (V, 2) vertex positions (x, y).
+    width : numpy.ndarray
+        float64 (V,) raw widths (cross-section diameter + one lane spacing).
+    root : numpy.ndarray
+        complex128 (V,) unit root followed by the cross-section.
+    flags : numpy.ndarray
+        uint8 (V,), bit 0 = next to singularity.
+    member_vertex, member_curve, member_param : numpy.ndarray
+        One row per crossing kept in a vertex: vertex id, streamline id, fractional sample index on it.
+    edges : numpy.ndarray
+        int64 (E, 2) with i < j; ``edge_curve`` int64 (E,) the streamline of each edge.
+    n_failed : int
+        Stations where no cross-section could be taken (singular or ambiguous roots).
+    """
+
+    xy: np.ndarray
+    width: np.ndarray
+    root: np.ndarray
+    flags: np.ndarray
+    member_vertex: np.ndarray
+    member_curve: np.ndarray
+    member_param: np.ndarray
+    edges: np.ndarray
+    edge_curve: np.ndarray
+    n_failed: int
+
+
+def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
+                     member_param: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edges between vertices consecutive along a streamline.
+
+    Parameters
+    ----------
+    member_vertex, member_curve, member_param : numpy.ndarray
+        Crossings: vertex id, streamline id, parameter (fractional sample index) on the streamline.
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        int64 (E, 2), ``i < j``, unique.
+    edge_curve : numpy.ndarray
+        int64 (E,) a streamline id that produced each edge (the lowest).
+    """
+    order = np.lexsort((member_param, member_curve))
+    v = member_vertex[order]
+    c = member_curve[order]
+    link = (c[1:] == c[:-1]) & (v[1:] != v[:-1])
+    a, b, cc = v[:-1][link], v[1:][link], c[:-1][link]
+    e = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+    if len(e) == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    # unique edges, keeping the lowest streamline id
+    o = np.lexsort((cc, e[:, 1], e[:, 0]))
+    e, cc = e[o], cc[o]
+    first = np.ones(len(e), bool)
+    first[1:] = np.any(e[1:] != e[:-1], axis=1)
+    return e[first].astype(np.int64), cc[first].astype(np.int64)
+
+
+def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
+                         *, step: float, station_spacing: float, cover_factor: float, min_station_gap: float,
+                         max_gap: float, max_section_length: float, ambiguity: float, tie: float) -> RawGraph:
+    """Cross-section vertices along the streamlines and the edges between them.
+
+    Parameters
+    ----------
+    c0, c2, band, singular : numpy.ndarray
+        The field (complex (H, W), 0 off the band), the band and the singular pixels.
+    lines : stages.graph.trace.Streamlines
+        The traced curves with their pixel lookup.
+    step : float
+        Step of the cross-section traces (px), the tracing step.
+    station_spacing : float
+        Target distance between consecutive cross-sections along a streamline (px).
+    cover_factor : float
+        A crossing covers its streamline ± ``cover_factor · station_spacing``.
+    min_station_gap : float
+        Uncovered stretches shorter than this (px) between covered ones get no cross-section.
+    max_gap : float
+        Largest gap between consecutive crossings inside one cross-section (px; reference 1).
+    max_section_length : float
+        Cap on each half of a cross-section (px).
+    ambiguity : float
+        No cross-section where the two roots are equally aligned with the streamline
+        (``||cos u| − |cos v|| < ambiguity``; reference 0.1).
+    tie : float
+        Root-choice tie margin.
+
+    Returns
+    -------
+    RawGraph
+    """
+    band = np.ascontiguousarray(band, dtype=np.bool_)
+    c0 = np.ascontiguousarray(np.where(band, c0, 0), dtype=np.complex128)
+    c2 = np.ascontiguousarray(np.where(band, c2, 0), dtype=np.complex128)
+    sx = np.ascontiguousarray(lines.xy[:, 0])
+    sy = np.ascontiguousarray(lines.xy[:, 1])
+    tx = np.ascontiguousarray(lines.tangent[:, 0])
+    ty = np.ascontiguousarray(lines.tangent[:, 1])
+    order = np.argsort(-lines.length, kind="stable").astype(np.int64)
+    spacing = max(2, int(round(station_spacing / step)))
+    out = _build_sections(
+        c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.curve,
+        lines.start, lines.length, lines.head, lines.next, order, float(step), spacing,
+        float(cover_factor * station_spacing / step), max(1, int(round(min_station_gap / step))),
+        float(max_gap), max(1, int(math.ceil(max_section_length / step))), float(ambiguity), float(tie))
+    xy, width, root, flags, _seed, mv, mc, mp, n_fail = out
+    edges, ecurve = streamline_edges(mv, mc, mp)
+    return RawGraph(xy=xy, width=width, root=root, flags=flags, member_vertex=mv, member_curve=mc,
+                    member_param=mp, edges=edges, edge_curve=ecurve, n_failed=int(n_fail))

@@ -1,0 +1,392 @@
+"""Streamline tracing of the PolyVector field (paper §4.1; B19 §A.2).
+
+Every band pixel seeds one streamline of its larger-modulus root, traced from the pixel centre in both
+directions by explicit Euler steps of ``step`` px.  At each step the coefficients are bilinearly
+interpolated (off-band pixels count as 0), the quartic is solved again and the trace continues along
+the one of ``±u/|u|, ±v/|v|`` best aligned with its previous direction (ties within ``tie`` with the
+other family are averaged).  That continuation is what carries a trace straight through an X junction.
+
+A half-trace stops when it
+
+* leaves the image or steps onto a pixel off the band, or the field there is zero (``LEFT``),
+* steps onto a singular pixel (``SINGULAR``),
+* *merges*: its pixel already holds a sample closer than ``merge_distance`` with ``|cos| >
+  merge_cos`` (``MERGED``).  Samples of the curve being traced count too, except those fewer than
+  ``self_merge_lag`` steps away along it, so a closed loop closes on itself but a trace never stops on
+  its own last points (the reference's lagged queue, expressed as an index distance),
+* reaches ``max_half_samples`` samples (``CAP``).
+
+A seed whose own centre already merges is skipped (most seeds: lanes fill the band at ~``merge_distance``
+spacing).  Traces of ≤ 2 samples are dropped, and so is a trace all of whose samples lie within
+``merge_distance`` of a single earlier curve (the reference's duplicate test).
+
+The kernel is one sequential numba loop: each trace depends on every earlier one through the merge
+test, so it cannot be vectorised over seeds without changing the result.  Samples live in a per-pixel
+linked list (``head``/``next``), which :mod:`stages.graph.cross_section` reuses to find the streamlines
+crossing a cross-section.
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+# Why a half-trace stopped (per curve end).
+LEFT, SINGULAR, MERGED, CAP, DEGENERATE = 0, 1, 2, 3, 4
+
+
+@njit(cache=True, inline="always")
+def coeffs_at(c0, c2, x, y):
+    """Bilinear c0, c2 at point (x, y) (pixel centres at +0.5); outside the image counts as 0."""
+    h, w = c0.shape
+    u = x - 0.5
+    v = y - 0.5
+    j0 = math.floor(u)
+    i0 = math.floor(v)
+    fu = u - j0
+    fv = v - i0
+    a0 = 0j
+    a2 = 0j
+    for di in range(2):
+        ii = i0 + di
+        if ii < 0 or ii >= h:
+            continue
+        wy = fv if di == 1 else 1.0 - fv
+        for dj in range(2):
+            jj = j0 + dj
+            if jj < 0 or jj >= w:
+                continue
+            wt = wy * (fu if dj == 1 else 1.0 - fu)
+            a0 += wt * c0[ii, jj]
+            a2 += wt * c2[ii, jj]
+    return a0, a2
+
+
+@njit(cache=True, inline="always")
+def quartic_roots(a0, a2):
+    """Roots u, v of z⁴ + a2 z² + a0 (the other two are −u, −v); same branches as field.polyvector_roots."""
+    disc = cmath.sqrt(a2 * a2 - 4.0 * a0)
+    return cmath.sqrt(0.5 * (-a2 + disc)), cmath.sqrt(0.5 * (-a2 - disc))
+
+
+@njit(cache=True, inline="always")
+def choose_direction(u, v, d, tie):
+    """Of ±u/|u|, ±v/|v| the unit direction best aligned with ``d`` (B19 ``chooseRoot``).
+
+    Returns ``(direction, family, ok)``: family 0 if it came from ``u``, 1 from ``v``; ``ok`` is False
+    when both roots vanish.  When the two families score within ``tie`` their (signed) average is used.
+    """
+    nu = abs(u)
+    nv = abs(v)
+    su = -2.0
+    sv = -2.0
+    du = 0j
+    dv = 0j
+    if nu > 1e-12:
+        du = u / nu
+        su = du.real * d.real + du.imag * d.imag
+        if su < 0:
+            du = -du
+            su = -su
+    if nv > 1e-12:
+        dv = v / nv
+        sv = dv.real * d.real + dv.imag * d.imag
+        if sv < 0:
+            dv = -dv
+            sv = -sv
+    if su < -1.0 and sv < -1.0:
+        return 0j, -1, False
+    if su >= sv:
+        best, fam, margin = du, 0, su - sv
+    else:
+        best, fam, margin = dv, 1, sv - su
+    if margin < tie:
+        m = du + dv
+        nm = abs(m)
+        if nm > 1e-12:
+            best = m / nm
+    return best, fam, True
+
+
+@njit(cache=True)
+def _grow_f(a, n):
+    b = np.empty(n, a.dtype)
+    b[:len(a)] = a
+    return b
+
+
+@njit(cache=True)
+def _merges(head, nxt, sx, sy, tx, ty, sc, si, w, qx, qy, dx, dy, cid, t, lag, d2, mcos):
+    s = head[int(qy) * w + int(qx)]
+    while s >= 0:
+        if not (sc[s] == cid and abs(si[s] - t) <= lag):
+            ex = sx[s] - qx
+            ey = sy[s] - qy
+            if ex * ex + ey * ey < d2 and abs(tx[s] * dx + ty[s] * dy) > mcos:
+                return True
+        s = nxt[s]
+    return False
+
+
+@njit(cache=True)
+def _is_duplicate(head, nxt, sx, sy, sc, w, base, n, cid, d2):
+    """Every sample in [base, n) lies within sqrt(d2) of one same earlier curve."""
+    s = head[int(sy[base]) * w + int(sx[base])]
+    cands = np.empty(64, np.int64)
+    nc = 0
+    while s >= 0 and nc < 64:
+        c = sc[s]
+        if c != cid:
+            seen = False
+            for q in range(nc):
+                if cands[q] == c:
+                    seen = True
+                    break
+            if not seen:
+                cands[nc] = c
+                nc += 1
+        s = nxt[s]
+    for q in range(nc):
+        c = cands[q]
+        all_close = True
+        for k in range(base, n):
+            r = head[int(sy[k]) * w + int(sx[k])]
+            close = False
+            while r >= 0:
+                if sc[r] == c:
+                    ex = sx[r] - sx[k]
+                    ey = sy[r] - sy[k]
+                    if ex * ex + ey * ey < d2:
+                        close = True
+                        break
+                r = nxt[r]
+            if not close:
+                all_close = False
+                break
+        if all_close:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_cos, lag, tie, cap):
+    H, W = band.shape
+    head = np.full(H * W, -1, np.int64)
+    sx = np.empty(cap, np.float32)
+    sy = np.empty(cap, np.float32)
+    tx = np.empty(cap, np.float32)
+    ty = np.empty(cap, np.float32)
+    sc = np.empty(cap, np.int32)
+    si = np.empty(cap, np.int32)
+    nxt = np.empty(cap, np.int64)
+    n = 0
+    ccap = 1024
+    c_start = np.empty(ccap, np.int64)
+    c_len = np.empty(ccap, np.int64)
+    c_end = np.empty((ccap, 2), np.int8)
+    nc = 0
+    tmp = np.empty((0, 4), np.float32)
+    for i in range(H):
+        for j in range(W):
+            d0 = seed_dir[i, j]
+            if not band[i, j] or singular[i, j] or d0 == 0:
+                continue
+            x0 = j + 0.5
+            y0 = i + 0.5
+            if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, x0, y0, d0.real, d0.imag, -1, 0, lag,
+                       merge_d2, merge_cos):
+                continue
+            cid = nc
+            base = n
+            reasons = np.empty(2, np.int8)
+            nf = 0
+            for half in range(2):
+                sgn = 1 if half == 0 else -1
+                px = x0
+                py = y0
+                d = d0 * sgn
+                k = 0
+                if half == 0:
+                    # the seed itself is sample 0 of the forward half
+                    if n + 1 >= cap:
+                        cap *= 2
+                        sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
+                        ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
+                        nxt = _grow_f(nxt, cap)
+                    sx[n] = x0; sy[n] = y0; tx[n] = d0.real; ty[n] = d0.imag; sc[n] = cid; si[n] = 0
+                    p = i * W + j
+                    nxt[n] = head[p]
+                    head[p] = n
+                    n += 1
+                reason = CAP
+                while k < max_half:
+                    a0, a2 = coeffs_at(c0, c2, px, py)
+                    u, v = quartic_roots(a0, a2)
+                    nd, fam, ok = choose_direction(u, v, d, tie)
+                    if not ok:
+                        reason = DEGENERATE
+                        break
+                    qx = px + h * nd.real
+                    qy = py + h * nd.imag
+                    if qx < 0 or qy < 0 or qx >= W or qy >= H:
+                        reason = LEFT
+                        break
+                    qi = int(qy)
+                    qj = int(qx)
+                    if not band[qi, qj]:
+                        reason = LEFT
+                        break
+                    if singular[qi, qj]:
+                        reason = SINGULAR
+                        break
+                    k += 1
+                    if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, qx, qy, nd.real, nd.imag, cid, sgn * k,
+                               lag, merge_d2, merge_cos):
+                        reason = MERGED
+                        break
+                    if n + 1 >= cap:
+                        cap *= 2
+                        sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
+                        ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
+                        nxt = _grow_f(nxt, cap)
+                    sx[n] = qx; sy[n] = qy
+                    # tangents are oriented along the final curve order (backward half reversed)
+                    tx[n] = sgn * nd.real; ty[n] = sgn * nd.imag
+                    sc[n] = cid; si[n] = sgn * k
+                    p = qi * W + qj
+                    nxt[n] = head[p]
+                    head[p] = n
+                    n += 1
+                    px = qx
+                    py = qy
+                    d = nd
+                reasons[half] = reason
+                if half == 0:
+                    nf = n - base
+            total = n - base
+            keep = total > 2
+            if keep and _is_duplicate(head, nxt, sx, sy, sc, W, base, n, cid, merge_d2):
+                keep = False
+            # this curve's samples sit at the front of their pixels' lists: unlink them
+            for s in range(n - 1, base - 1, -1):
+                p = int(sy[s]) * W + int(sx[s])
+                while head[p] >= base:
+                    head[p] = nxt[head[p]]
+            if not keep:
+                n = base
+                continue
+            # lay the curve out as reversed backward half + forward half, then relink in that order
+            if tmp.shape[0] < total:
+                tmp = np.empty((2 * total, 4), np.float32)
+            nb = total - nf
+            for q in range(nb):
+                s = base + nf + nb - 1 - q
+                tmp[q, 0] = sx[s]; tmp[q, 1] = sy[s]; tmp[q, 2] = tx[s]; tmp[q, 3] = ty[s]
+            for q in range(nf):
+                s = base + q
+                tmp[nb + q, 0] = sx[s]; tmp[nb + q, 1] = sy[s]; tmp[nb + q, 2] = tx[s]; tmp[nb + q, 3] = ty[s]
+            for q in range(total):
+                s = base + q
+                sx[s] = tmp[q, 0]; sy[s] = tmp[q, 1]; tx[s] = tmp[q, 2]; ty[s] = tmp[q, 3]
+                si[s] = q
+                p = int(sy[s]) * W + int(sx[s])
+                nxt[s] = head[p]
+                head[p] = s
+            if nc >= ccap:
+                ccap *= 2
+                c_start = _grow_f(c_start, ccap)
+                c_len = _grow_f(c_len, ccap)
+                ce = np.empty((ccap, 2), np.int8)
+                ce[:nc] = c_end[:nc]
+                c_end = ce
+            c_start[nc] = base
+            c_len[nc] = total
+            c_end[nc, 0] = reasons[1]
+            c_end[nc, 1] = reasons[0]
+            nc += 1
+    return (sx[:n].copy(), sy[:n].copy(), tx[:n].copy(), ty[:n].copy(), sc[:n].copy(), nxt[:n].copy(), head,
+            c_start[:nc].copy(), c_len[:nc].copy(), c_end[:nc].copy())
+
+
+@dataclass
+class Streamlines:
+    """Traced curves and the per-pixel sample lookup.
+
+    Attributes
+    ----------
+    xy : numpy.ndarray
+        float32 (N, 2) samples (x, y), curve after curve.
+    tangent : numpy.ndarray
+        float32 (N, 2) unit tangents, oriented along each curve.
+    curve : numpy.ndarray
+        int32 (N,) curve id of each sample.
+    start, length : numpy.ndarray
+        int64 (C,) first sample and number of samples of each curve.
+    end_reason : numpy.ndarray
+        int8 (C, 2) why the curve stopped at its first / last sample (``LEFT``, ``SINGULAR``,
+        ``MERGED``, ``CAP``, ``DEGENERATE``).
+    head, next : numpy.ndarray
+        int64 per-pixel linked lists of sample ids (``head[row * W + col]``, ``-1`` terminated).
+    """
+
+    xy: np.ndarray
+    tangent: np.ndarray
+    curve: np.ndarray
+    start: np.ndarray
+    length: np.ndarray
+    end_reason: np.ndarray
+    head: np.ndarray
+    next: np.ndarray
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """int64 (C + 1,) ragged offsets of the curves into ``xy``."""
+        return np.concatenate([self.start, [len(self.xy)]]).astype(np.int64)
+
+
+def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray,
+                      seed_root: np.ndarray, *, step: float, max_half_samples: int, merge_distance: float,
+                      merge_cos: float, self_merge_lag: int, tie: float) -> Streamlines:
+    """Trace the field from every band pixel in both directions.
+
+    Parameters
+    ----------
+    c0, c2 : numpy.ndarray
+        complex (H, W) PolyVector coefficients, 0 off the band.
+    band : numpy.ndarray
+        bool (H, W), the narrow band.
+    singular : numpy.ndarray
+        bool (H, W) singular pixels; traces stop on them and no seed starts there.
+    seed_root : numpy.ndarray
+        complex (H, W) the root each pixel seeds (the larger-modulus root); 0 = no seed.
+    step : float
+        Euler step h in px (reference 0.1).
+    max_half_samples : int
+        Length cap of each half-trace in samples (reference 10 000).
+    merge_distance, merge_cos : float
+        Merge test: a sample closer than this with ``|cos|`` above ``merge_cos`` stops the trace.
+    self_merge_lag : int
+        Own samples fewer than this many steps away along the curve do not stop it.
+    tie : float
+        Root-choice tie margin (averaged directions).
+
+    Returns
+    -------
+    Streamlines
+    """
+    band = np.ascontiguousarray(band, dtype=np.bool_)
+    sing = np.ascontiguousarray(singular, dtype=np.bool_)
+    c0 = np.ascontiguousarray(np.where(band, c0, 0), dtype=np.complex128)
+    c2 = np.ascontiguousarray(np.where(band, c2, 0), dtype=np.complex128)
+    mod = np.abs(seed_root)
+    seed = np.where(band & (mod > 1e-12), seed_root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
+    cap = max(1024, int(band.sum()) * 64)
+    sx, sy, tx, ty, sc, nxt, head, cs, cl, ce = _trace_all(
+        c0, c2, band, sing, np.ascontiguousarray(seed), float(step), int(max_half_samples),
+        float(merge_distance) ** 2, float(merge_cos), int(self_merge_lag), float(tie), cap)
+    return Streamlines(xy=np.stack([sx, sy], axis=1), tangent=np.stack([tx, ty], axis=1), curve=sc,
+                       start=cs, length=cl, end_reason=ce, head=head, next=nxt)
