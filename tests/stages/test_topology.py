@@ -1,0 +1,292 @@
+"""Tests of the topology stage on drawings whose answer is known.
+
+Graph artifacts come from :mod:`stages.topology.synthetic_graph` (chains along the exact centre lines,
+shaped like the traced graph at X, T and Y junctions); masks from the rendered grey.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+import pytest
+import yaml
+
+from stages import synthetic
+from stages.artifact import unpack_ragged
+from stages.errors import InputError
+from stages.synthetic import Drawing, render
+from stages.topology import run, render_topology
+from stages.topology.steiner import steiner_tree
+from stages.topology.synthetic_graph import synthetic_inputs
+
+ROOT = Path(__file__).resolve().parents[2]
+CFG = yaml.safe_load((ROOT / "conf" / "topology" / "default.yaml").read_text())
+
+
+def _run(drawing, keypoints=None, **overrides):
+    cfg = {**CFG, **overrides}
+    inputs = synthetic_inputs(drawing, keypoints=keypoints)
+    return run(cfg, **inputs), inputs
+
+
+def _pairs(art) -> list[tuple[int, int]]:
+    return [tuple(sorted(p["end_keypoints"])) for p in art.data["paths"]]
+
+
+def _uncovered(art, inputs) -> int:
+    mask = inputs["prep"]["mask"]
+    covered = np.zeros(mask.size, bool)
+    for px in unpack_ragged(art["coverage"], art["coverage_offsets"]):
+        covered[px] = True
+    return int((mask.ravel() & ~covered).sum())
+
+
+def _fork(centre_keypoint: bool) -> Drawing:
+    """A Y with a stem and two branches 20° either side of its axis (a clear stem)."""
+    c = np.array([32.0, 34.0])
+    strokes = [np.array([c, [32, 60]]), np.array([c, [22, 6]]), np.array([c, [42, 6]])]
+    kps = [(32, 60, 1), (22, 6, 1), (42, 6, 1)] + ([(32, 34, 3)] if centre_keypoint else [])
+    return Drawing(render((64, 64), strokes, 3.0), strokes, 3.0, kps)
+
+
+def _ladder(n_rungs: int, gap: float = 8.0, height: float = 24.0, w: float = 2.0) -> Drawing:
+    """Two rails and ``n_rungs`` rungs joined at shared vertices: one component with many cycles."""
+    xs = 10 + gap * np.arange(n_rungs + 2)
+    top, bot = 10.0, 10.0 + height
+    strokes = []
+    for a, b in zip(xs[:-1], xs[1:]):
+        strokes += [np.array([[a, top], [b, top]]), np.array([[a, bot], [b, bot]])]
+    strokes += [np.array([[x, top], [x, bot]]) for x in xs[1:-1]]
+    shape = (int(bot + 12), int(xs[-1] + 12))
+    kps = [(xs[0], top, 1), (xs[-1], top, 1), (xs[0], bot, 1), (xs[-1], bot, 1)]
+    return Drawing(render(shape, strokes, w), strokes, w, kps)
+
+
+# ---------------------------------------------------------------------------------------------
+# Junctions and corners
+# ---------------------------------------------------------------------------------------------
+
+def test_line_is_one_path_between_its_endpoints():
+    d = synthetic.line()
+    art, _ = _run(d)
+    assert _pairs(art) == [(0, 1)]
+    p = art.data["paths"][0]
+    assert p["end_types"] == [1, 1]
+    np.testing.assert_allclose([p["xy"][0], p["xy"][-1]], [d.keypoints[0][:2], d.keypoints[1][:2]], atol=1e-5)
+
+
+def test_x_gives_two_crossing_paths_between_opposite_ends():
+    d = synthetic.cross()       # keypoints: stroke A ends 0, 1; stroke B ends 2, 3; centre 4
+    art, _ = _run(d)
+    paths = {tuple(sorted(p["end_keypoints"])): p for p in art.data["paths"]}
+    assert (0, 1) in paths and (2, 3) in paths
+    assert paths[(0, 1)]["through_keypoints"] == [4] and paths[(2, 3)]["through_keypoints"] == [4]
+    assert paths[(0, 1)]["component"] != paths[(2, 3)]["component"]   # disjoint branches, no turn possible
+    assert not {(0, 2), (0, 3), (1, 2), (1, 3)} & set(paths)
+    # The keypoint maps to one key vertex per branch, and the halves end on it.
+    kv = [k for k in art.data["key_vertices"] if k["keypoint"] == 4]
+    assert len(kv) == 2 and kv[0]["component"] != kv[1]["component"]
+    assert {(0, 4), (1, 4), (2, 4), (3, 4)} <= set(paths)
+
+
+def test_t_gives_the_bar_and_the_stem_ending_on_it():
+    d = synthetic.tee()         # bar ends 0, 1; stem end 2; T keypoint 3
+    art, _ = _run(d)
+    pairs = _pairs(art)
+    assert (2, 3) in pairs                                  # the stem ends at the T keypoint
+    stem = next(p for p in art.data["paths"] if tuple(sorted(p["end_keypoints"])) == (2, 3))
+    end = stem["xy"][0 if stem["end_keypoints"][0] == 3 else -1]
+    np.testing.assert_allclose(end, d.keypoints[3][:2], atol=1e-5)
+    assert (0, 3) in pairs and (1, 3) in pairs              # the bar is split at the keypoint ...
+    bar = [p for p in art.data["paths"] if tuple(sorted(p["end_keypoints"])) == (0, 1)]
+    assert len(bar) == 1 and bar[0]["through_keypoints"] == [3]   # ... and also offered whole
+    assert (0, 2) not in pairs and (1, 2) not in pairs      # the stem never turns into the bar
+
+
+def test_without_pass_through_x_paths_stop_at_the_junction():
+    art, _ = _run(synthetic.cross(), pass_through_junctions=False)
+    assert sorted(_pairs(art)) == [(0, 4), (1, 4), (2, 4), (3, 4)]
+
+
+def test_y_with_keypoint_gives_three_paths_meeting_at_the_centre():
+    d = synthetic.wye()         # tips 0, 1, 2; centre 3
+    art, _ = _run(d)
+    assert sorted(_pairs(art)) == [(0, 3), (1, 3), (2, 3)]
+    for p in art.data["paths"]:
+        assert 3 in p["end_keypoints"] and p["through_keypoints"] == []
+
+
+def test_y_junction_turn_test_forbids_branch_to_branch():
+    art, _ = _run(_fork(centre_keypoint=False))   # stem tip 0, branch tips 1, 2
+    assert sorted(_pairs(art)) == [(0, 1), (0, 2)]
+    assert _uncovered(art, synthetic_inputs(_fork(False))) == 0
+    # The test is what removes it: allowing every turn brings the branch-to-branch path back.
+    art, _ = _run(_fork(centre_keypoint=False), turn_min_cos=-1.0)
+    assert (1, 2) in _pairs(art)
+
+
+def test_zigzag_splits_at_its_corners():
+    d = synthetic.zigzag()      # ends 0, 1; corners 2..6 in order along the stroke
+    art, _ = _run(d)
+    order = [0, 2, 3, 4, 5, 6, 1]
+    expected = sorted(tuple(sorted(p)) for p in zip(order[:-1], order[1:]))
+    assert sorted(_pairs(art)) == expected
+    assert all(p["through_keypoints"] == [] for p in art.data["paths"])
+    for p in art.data["paths"]:
+        types = sorted(p["end_types"])
+        assert types in ([1, 5], [5, 5])
+
+
+def test_closed_loop_without_keypoints_is_covered():
+    d = synthetic.circle()
+    art, inputs = _run(d)
+    assert len(art.data["paths"]) >= 1
+    assert all(p["end_types"] == [0, 0] and p["end_keypoints"] == [-1, -1] for p in art.data["paths"])
+    assert _uncovered(art, inputs) == 0
+    assert art.data["counts"]["loop_a_paths"] >= 1         # the second half came from the coverage loop
+
+
+def test_loop_with_one_corner_keypoint_is_covered():
+    d = synthetic.circle()
+    x, y = d.strokes[0][0]
+    art, inputs = _run(d, keypoints=[(x, y, 5)])
+    assert _uncovered(art, inputs) == 0
+    assert all(0 in p["end_keypoints"] for p in art.data["paths"])
+
+
+def test_missed_endpoint_becomes_a_synthetic_key_vertex():
+    d = synthetic.wye()
+    kps = [k for i, k in enumerate(d.keypoints) if i != 2]     # drop one tip: a missed keypoint
+    art, inputs = _run(d, keypoints=kps)
+    assert art.data["counts"]["loop_b_paths"] == 1
+    synth = [k for k in art.data["key_vertices"] if k["keypoint"] == -1]
+    assert len(synth) == 1
+    np.testing.assert_allclose(synth[0]["xy"], d.strokes[2][1], atol=1.5)
+    assert _uncovered(art, inputs) == 0
+
+
+@pytest.mark.parametrize("make", [synthetic.line, synthetic.cross, synthetic.tee, synthetic.wye, synthetic.vee,
+                                  synthetic.zigzag, synthetic.circle, synthetic.example_drawing,
+                                  lambda: _fork(False), lambda: _ladder(12)],
+                         ids=["line", "cross", "tee", "wye", "vee", "zigzag", "circle", "example", "fork", "ladder"])
+def test_every_band_pixel_is_covered_by_some_path(make):
+    d = make()
+    art, inputs = _run(d)
+    assert _uncovered(art, inputs) == 0
+    assert art.data["counts"]["band_pixels_covered"] == art.data["counts"]["band_pixels"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Artifact contract, rendering, bad input
+# ---------------------------------------------------------------------------------------------
+
+def test_artifact_follows_the_contract():
+    d = synthetic.tee()
+    art, inputs = _run(d)
+    json.dumps(art.data)
+    w = inputs["prep"]["mask"].shape[1]
+    cov = unpack_ragged(art["coverage"], art["coverage_offsets"])
+    assert art["coverage"].dtype == np.int32 and len(cov) == len(art.data["paths"])
+    mask = inputs["prep"]["mask"].ravel()
+    nv = len(inputs["graph"]["vertex_xy"])
+    for p, px in zip(art.data["paths"], cov):
+        assert set(p) >= {"id", "component", "vertices", "xy", "widths", "interest_dist", "end_types",
+                          "end_keypoints"}
+        n = len(p["vertices"])
+        assert len(p["xy"]) == len(p["widths"]) == len(p["interest_dist"]) == n >= 2
+        assert all(0 <= v < nv for v in p["vertices"])
+        assert p["interest_dist"][0] == 0 and p["interest_dist"][-1] == 0
+        assert min(p["interest_dist"]) >= 0
+        assert np.all(mask[px]) and np.all(np.diff(px) > 0)
+        for k, xy in zip(p["end_keypoints"], (p["xy"][0], p["xy"][-1])):
+            np.testing.assert_allclose(xy, d.keypoints[k][:2], atol=1e-5)
+        assert all(0 <= (i % w) for i in px)
+    assert [p["id"] for p in art.data["paths"]] == list(range(len(art.data["paths"])))
+    for kv in art.data["key_vertices"]:
+        assert set(kv) >= {"vertex", "keypoint", "type", "xy", "component"}
+    assert len(art.data["steiner_edges"]) == len(art["steiner_segments"]) > 0
+
+
+def test_interest_distance_grows_away_from_the_ends():
+    art, _ = _run(synthetic.line())
+    dist = np.array(art.data["paths"][0]["interest_dist"])
+    mid = len(dist) // 2
+    assert dist[mid] == pytest.approx(22.0, abs=1.0)
+    assert np.all(np.diff(dist[:mid]) > 0)
+
+
+def test_render_shows_key_vertices_and_paths():
+    d = synthetic.tee()
+    art, _ = _run(d)
+    rgb = render_topology(d.grey, art, scale=4)
+    assert rgb.shape == (d.grey.shape[0] * 4, d.grey.shape[1] * 4, 3) and rgb.dtype == np.uint8
+    flat = rgb.reshape(-1, 3)
+    assert np.any(np.all(flat == (30, 90, 255), axis=1))      # an endpoint disc
+    assert np.any(np.all(flat == (255, 140, 0), axis=1))      # the junction disc
+    assert len(np.unique(flat, axis=0)) > 20
+
+
+def test_empty_graph_gives_no_paths():
+    d = synthetic.line()
+    inputs = synthetic_inputs(d)
+    g = inputs["graph"]
+    for name in ("vertex_xy", "vertex_width", "vertex_root", "edges"):
+        g.arrays[name] = g.arrays[name][:0]
+    art = run(CFG, **inputs)
+    assert art.data["paths"] == [] and len(art["coverage_offsets"]) == 1
+
+
+def test_bad_input_raises_input_error():
+    inputs = synthetic_inputs(synthetic.line())
+    with pytest.raises(InputError):
+        run({**CFG, "unknown_key": 1}, **inputs)
+    with pytest.raises(InputError):
+        run(CFG, prep=inputs["prep"], graph=inputs["graph"], keypoints=inputs["keypoints"])
+    inputs["graph"].arrays["edges"] = np.array([[0, 10_000]], np.int32)
+    with pytest.raises(InputError):
+        run(CFG, **inputs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Building blocks and scale
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["mehlhorn", "kou"])
+def test_steiner_tree_is_a_pruned_tree_as_good_as_networkx(method):
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(3)
+    g = nx.random_geometric_graph(150, 0.15, seed=3)
+    g = g.subgraph(max(nx.connected_components(g), key=len)).copy()
+    g = nx.convert_node_labels_to_integers(g)
+    pos = nx.get_node_attributes(g, "pos")
+    for u, v in g.edges:
+        g[u][v]["weight"] = float(np.hypot(*(np.subtract(pos[u], pos[v])))) + 1e-9
+    terminals = rng.choice(g.number_of_nodes(), 12, replace=False)
+    csr = sp.csr_matrix(nx.to_scipy_sparse_array(g, weight="weight", format="csr"))
+    tree = steiner_tree(csr, terminals, method)
+    t = nx.Graph()
+    t.add_weighted_edges_from((int(u), int(v), g[int(u)][int(v)]["weight"]) for u, v in tree)
+    assert nx.is_tree(t) and set(terminals.tolist()) <= set(t.nodes)
+    assert all(n in set(terminals.tolist()) for n in t.nodes if t.degree(n) == 1)
+    ref = nx.algorithms.approximation.steiner_tree(g, terminals.tolist(), weight="weight", method=method)
+    ours, theirs = t.size(weight="weight"), ref.size(weight="weight")
+    assert ours <= 1.05 * theirs
+
+
+def test_many_cycles_and_terminals_do_not_give_up():
+    """A ladder (one component, many cycles, no keypoint inside) and a zigzag with 120 corners."""
+    art, inputs = _run(_ladder(30))
+    assert art.data["counts"]["loop_a_paths"] >= 29          # every rung closes a cycle the tree misses
+    assert _uncovered(art, inputs) == 0
+    n = 121
+    pts = np.stack([10 + 10.0 * np.arange(n), np.where(np.arange(n) % 2 == 0, 46.0, 18.0)], axis=1)
+    kps = [(*pts[0], 1), (*pts[-1], 1)] + [(*p, 5) for p in pts[1:-1]]
+    z = Drawing(render((64, int(pts[-1, 0]) + 10), [pts], 3.0), [pts], 3.0, kps)
+    art, inputs = _run(z)
+    assert len(art.data["key_vertices"]) == n
+    assert len(art.data["paths"]) == n - 1
+    assert _uncovered(art, inputs) == 0
