@@ -42,22 +42,43 @@ Steps (in the order of :func:`compute_field`):
 
 Choices made on purpose (vs. the references)
 -------------------------------------------
-* **β = 10**, the authors' PolyVector-flow value (authors-implementation.md §3), not B19's 50: this
-  project reproduces the PolyVector-flow paper, whose graph, flow and tuning were built on that field.
+* **β = 50** (B19's value), not the authors' 10, although this project reproduces the authors'
+  paper.  Measured with the reference α = 0.1 (synthetic strokes thresholded at grey < 165/255):
+
+  ====================================  ================  ================
+  measure                               β = 10 (authors)  β = 50 (B19)
+  ====================================  ================  ================
+  17° stroke, 80 px, width 3/4/5:       79 / 97 / 91 %    100 / 99 / 98 %
+  band pixels with tangent root < 2°
+  60° crossing, width 4/5/6: median     14 / 12 / 10°     8 / 7 / 7°
+  root error where the strokes overlap
+  scans (4 drawings, prep mask):        8–95              0–20
+  singular pixels left
+  50° corner, leg pixels 2–4 px away:   7.0 / 5.9°        10.8 / 7.6°
+  median tangent error
+  ====================================  ================  ================
+
+  β = 10 lets the Sobel aliasing of thin anti-aliased strokes through (a few degrees, periodic) and
+  leaves 5× more singularities on scans; β = 50 rounds the field at sharp corners slightly more.
   It is ``beta`` in ``conf/field/default.yaml``.
+* **α = 0.1** (both references).  It is what keeps X junctions from being represented exactly: it
+  pulls each arm's second root to the arm's normal, so where two strokes overlap the field is a
+  compromise between the arms' {stroke, normal} frames (≈ 7° off with β = 50).  α = 0.01 gives
+  2–4° there but 3–10× more singular pixels on scans, so we keep 0.1.
+* **Tie-break of equal moduli** by the smoothed image tangent (step 5).
 * **One system for all components** instead of B19's per-component solves: the matrix is block
   diagonal, so the solution is the same up to the CG stopping rule, and one solve avoids a Python loop
   over hundreds of tiny components in a scan.  The singularity loop is therefore global: it stops
   when the *total* count stops falling.
 * **CG tolerance.**  The references run Eigen's CG to machine epsilon; we stop at a relative residual
-  of ``cg_rtol`` (default 1e-6).  Measured on the four scanned drawings (see the benchmark), 1e-6
-  changes the tangent root by < 0.05° on > 99.9 % of band pixels compared to 1e-12, at about half the
-  iterations.
+  of ``cg_rtol`` = 1e-6.  On the four scans (prep mask, β = 50) the roots then match a 1e-12 cold
+  solve to < 0.05° on every band pixel, with 23–35 % of its CG iterations; 1e-4 already moves up to
+  1.8 % of the pixels by > 0.05° and changes the singularity count.  ``cg_max_iterations`` caps every
+  solve (observed ≤ 215 per solve).
 * **Warm start.**  Each re-solve of the singularity loop starts from the previous solution
-  (``warm_start``), the references start from zero; the fixed point is the same, CG needs fewer
-  iterations.
-* **Kept solution.**  If a re-solve *raises* the singularity count the loop stops and keeps the
-  solution with the fewest singular pixels (the reference keeps the last one).
+  (``warm_start``); the references start from zero.  Same fixed point, 25–47 % fewer iterations.
+* **Kept solution.**  If a re-solve does not lower the singularity count the loop stops and keeps
+  the solution with the fewest singular pixels (the reference keeps the last one).
 * Pixels with no data and no smoothness neighbour (isolated single-pixel band components without
   gradient) have an all-zero row; the Jacobi preconditioner uses 1 there and their coefficients stay 0.
 * An empty band yields an all-zero field (no error): an empty drawing is prep's to reject.
@@ -99,7 +120,7 @@ class FieldConfig:
     beta: float
     gradient_cutoff: float
     cg_rtol: float
-    cg_maxiter_factor: float
+    cg_max_iterations: int
     warm_start: bool
     max_singularity_iterations: int
     extension_radius: int
@@ -116,7 +137,7 @@ class FieldConfig:
             raise InputError(f"field config: missing keys {sorted(missing)}, unknown keys {sorted(unknown)}")
         return cls(alpha=float(cfg["alpha"]), beta=float(cfg["beta"]),
                    gradient_cutoff=float(cfg["gradient_cutoff"]), cg_rtol=float(cfg["cg_rtol"]),
-                   cg_maxiter_factor=float(cfg["cg_maxiter_factor"]), warm_start=bool(cfg["warm_start"]),
+                   cg_max_iterations=int(cfg["cg_max_iterations"]), warm_start=bool(cfg["warm_start"]),
                    max_singularity_iterations=int(cfg["max_singularity_iterations"]),
                    extension_radius=int(cfg["extension_radius"]),
                    extension_scale=float(cfg["extension_scale"]),
@@ -517,7 +538,7 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
         w_cur = w0.copy()
         x = None
         best = None
-        maxiter = max(10, int(cfg.cg_maxiter_factor * 2 * n))
+        maxiter = max(1, cfg.cg_max_iterations)
         for _ in range(max(1, cfg.max_singularity_iterations)):
             a, rhs = _assemble(mask, index, tau_b, w_cur, cfg)
             x0 = x if (cfg.warm_start and x is not None) else None
@@ -594,7 +615,7 @@ def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray
     k = int(in_ring.sum())
     a = sp.block_diag([lrr, lrr], format="csr").astype(np.complex128)
     rhs = -np.concatenate([lrb @ band_vals[:, 0], lrb @ band_vals[:, 1]])
-    x, iters, _ = _conjugate_gradient(a, rhs, None, cfg.cg_rtol, max(10, int(cfg.cg_maxiter_factor * 2 * k)))
+    x, iters, _ = _conjugate_gradient(a, rhs, None, cfg.cg_rtol, max(1, cfg.cg_max_iterations))
     dist = ndi.distance_transform_cdt(~mask, metric="taxicab").astype(np.float64)
     scale = cfg.extension_scale * dist[ring]
     c0_ext[ring] = x[:k] * scale
