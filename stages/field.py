@@ -529,7 +529,7 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
     n = int(mask.sum())
     tau_b = tau[mask]
     stats: dict = {"unknowns": 2 * n, "band_pixels": n, "cg_iterations": [], "cg_converged": [],
-                   "singular_pixels": [], "nonzeros": []}
+                   "singular_pixels": [], "nonzeros": [], "tie_swapped": 0}
     c0 = np.zeros((h, w), np.complex128)
     c2 = np.zeros((h, w), np.complex128)
     roots = np.zeros((h, w, 2), np.complex128)
@@ -699,7 +699,7 @@ def render_field(grey: np.ndarray, roots: np.ndarray, mask: np.ndarray, step: in
     rgb = np.repeat((g * 255)[..., None], 3, axis=2)
     # Fade the drawing so the crosses stand out; tint the band.
     rgb = 90 + 0.65 * rgb
-    rgb[mask] = rgb[mask] * np.array([1.0, 1.0, 0.75]) + np.array([0, 0, 0])
+    rgb[mask] = rgb[mask] * np.array([1.0, 1.0, 0.75])
     rgb = np.repeat(np.repeat(np.clip(rgb, 0, 255).astype(np.uint8), scale, 0), scale, 1)
     img = Image.fromarray(rgb, "RGB")
     draw = ImageDraw.Draw(img)
