@@ -255,14 +255,15 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
         r = per.get(stage)
         if r is not None and r.status in ("failed", "skipped") and not row["error"]:
             row["error"] = f"{stage}: {r.error}"
-    row.update(stage_timings({s: store.manifest(s, k) for s, k in keys.items()}))
+    row.update(stage_timings({s: store.manifest(s, keys[s]) for s in batch.stages if s in keys}))
 
     grey = load_grey(case.image)
     shape = grey.shape
     input_ink = grey.astype(np.float64) < rparams.ink_threshold
     width = case.width if case.width is not None else estimate_stroke_width(input_ink)
     row["width"] = round(float(width), 3)
-    pic: dict[str, Any] = {"grey": grey, "curves": [], "markers": {}, "gt": None, "keypoints": None}
+    pic: dict[str, Any] = {"grey": grey, "curves": None, "markers": {}, "gt": None, "keypoints": None,
+                           "gt_keypoints": None}
 
     curves, source = final_curves(store, keys)
     row["curves_from"] = source
@@ -279,20 +280,22 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
             row["error"] = "blank output (no ink after rasterising the curves)"
         topo = extract_topology(curves, width, tparams)
         pic["markers"] = {"free_end": topo.free_ends, "junction": topo.junctions, "gap": topo.gaps[:, :2]}
-        if case.strokes is not None:
-            gt_topo = extract_topology(case.strokes, width, tparams)
-            row.update(compare_topology(topo, gt_topo, width, tparams))
-            pic["gt"] = (case.strokes, {"free_end": gt_topo.free_ends, "junction": gt_topo.junctions,
-                                        "gap": gt_topo.gaps[:, :2]})
-        else:
-            row.update(topo.counts())
     elif expects_curves and not row["error"]:
         row["error"] = "no curves"
+    if case.strokes is not None:
+        gt_topo = extract_topology(case.strokes, width, tparams)
+        pic["gt"] = (case.strokes, {"free_end": gt_topo.free_ends, "junction": gt_topo.junctions,
+                                    "gap": gt_topo.gaps[:, :2]})
+        if curves is not None:
+            row.update(compare_topology(topo, gt_topo, width, tparams))
+    elif curves is not None:
+        row.update(topo.counts())
 
     kp = predicted_keypoints(store, keys)
     if kp is not None:
         row["kp_count"] = int(len(kp[0]))
         pic["keypoints"] = kp
+        pic["gt_keypoints"] = case.keypoints
         if case.keypoints is not None:
             row.update(score_keypoints(kp, case.keypoints, shape[0], dict(bcfg["keypoints"])))
     return row, pic
@@ -347,6 +350,11 @@ def summary_tables(rows: list[dict], bcfg: dict) -> dict[str, list[dict]]:
     if gt_rows:
         out["ground truth"] = summarise(gt_rows, list(rep["gt_columns"]), group_by="group")
     out["fidelity, topology, cost"] = summarise(rows, list(rep["fidelity_columns"]), group_by="group")
+    from pipeline.registry import STAGES
+
+    stage_cols = [f"t_{s.name}" for s in STAGES if any(f"t_{s.name}" in r for r in rows)]
+    if stage_cols:
+        out["seconds per stage"] = summarise(rows, stage_cols + ["time_s"], group_by="group")
     return out
 
 
@@ -374,17 +382,32 @@ def _safe_name(name: str) -> str:
 
 
 def case_picture(pic: dict, scale: int) -> np.ndarray:
-    """Panels: output curves with their topology; ground truth with its topology; keypoints."""
+    """Labelled panels: output curves and their topology; ground truth and its topology; keypoints."""
+    from PIL import Image, ImageDraw
+
     from stages.evaluate.render import hstack_panels, overlay
 
-    panels = [overlay(pic["grey"], pic["curves"], pic["markers"], scale=scale)]
+    panels: list[tuple[str, np.ndarray]] = []
+    if pic["curves"] is not None:
+        panels.append((f"output: {len(pic['curves'])} curves",
+                       overlay(pic["grey"], pic["curves"], pic["markers"], scale=scale)))
+    else:
+        panels.append(("input (no curves)", overlay(pic["grey"], [], {}, scale=scale, fade=0.0)))
     if pic["gt"] is not None:
-        panels.append(overlay(pic["grey"], pic["gt"][0], pic["gt"][1], scale=scale))
+        panels.append((f"ground truth: {len(pic['gt'][0])} strokes", overlay(pic["grey"], *pic["gt"], scale=scale)))
     if pic["keypoints"] is not None:
         pts, types = pic["keypoints"]
         marks = {"free_end": pts[types == 1], "junction": pts[types == 3], "corner": pts[types == 5]}
-        panels.append(overlay(pic["grey"], [], marks, scale=scale))
-    return hstack_panels(panels)
+        if pic.get("gt_keypoints"):
+            marks["gt"] = np.concatenate(list(pic["gt_keypoints"].values())).reshape(-1, 2)
+        panels.append((f"keypoints: {len(pts)} detected" + (", GT purple" if "gt" in marks else ""),
+                       overlay(pic["grey"], [], marks, scale=scale, marker_radius=3)))
+    labelled = []
+    for title, img in panels:
+        im = Image.fromarray(img)
+        ImageDraw.Draw(im).text((4, 2), title, fill=(0, 0, 0))
+        labelled.append(np.asarray(im))
+    return hstack_panels(labelled)
 
 
 def write_report(rows: list[dict], tables: dict, pictures: dict[str, str], out: Path, bcfg: dict,
@@ -467,7 +490,10 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     from PIL import Image
     from rich.console import Console
 
-    console = console or Console(stderr=True)
+    if console is None:
+        console = Console(stderr=True)
+        if not console.is_terminal:  # a log file: do not squeeze the tables into 80 columns
+            console = Console(stderr=True, width=220)
     bcfg = OmegaConf.to_container(cfg.bench, resolve=True)
     cases = discover_cases(list(bcfg["cases"] or []), bcfg.get("limit"))
     out = Path(str(bcfg["out"]))
