@@ -539,6 +539,7 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
             pictures[r["name"]] = rel
     tables = summary_tables(rows, bcfg)
     extra = {"command": "polyvec-bench " + " ".join(sys.argv[1:]), "batch_wall_s": batch_wall,
+             "stage_status": batch.counts(),
              "stages": batch.stages, "sorted_by": sort_by, "cases": len(rows),
              "failures": sum(1 for r in rows if r.get("error")), "bench": bcfg,
              "config": {k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
@@ -550,8 +551,11 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
         console.print(f"[red]failed[/] {r['name']}: {r['error']}", highlight=False, soft_wrap=True)
     if len(fails) > 20:
         console.print(f"… and {len(fails) - 20} more failures (see {out / 'cases.csv'})")
-    console.print(f"batch {batch_wall:.1f} s; report in {out}/ (report.html, cases.csv, cases.json, summary.json)",
-                  highlight=False)
+    counts = batch.counts()
+    computed = max((c.get("computed", 0) for c in counts.values()), default=0)
+    console.print(f"pipeline wall time {batch_wall:.1f} s for {len(rows)} images ({computed} with stages computed "
+                  f"in this run); time_s = the sum of an image's stage times, cached or not", highlight=False)
+    console.print(f"report in {out}/ (report.html, cases.csv, cases.json, summary.json)", highlight=False)
     return rows, tables
 
 
