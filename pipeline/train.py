@@ -1,0 +1,388 @@
+"""``polyvec-train``: train the keypoint network on procedural drawings (paper §3.1, Appendix B).
+
+Usage::
+
+    polyvec-train                                   # conf/train_app.yaml: train + keypoints + prep
+    polyvec-train train.steps=2000 train.out_dir=runs/small train.network.level_channels=[8,16,32,64]
+
+What it does, per step: a batch of crops of procedural drawings (stages/keypoints/generator.py,
+generated on the fly by DataLoader workers, each drawing a pure function of (seed, worker, index)),
+prep's contrast normalisation and narrow band, the authors' network-input normalisation, Gaussian
+targets (σ = ``sigma``), random flips / quarter turns, the masked asymmetric loss of Eq. 1, Adam with
+cosine annealing. Crops grow in size during training (``crop_schedule``; the authors train on
+80×80 crops of growing-resolution images). Every ``checkpoint_every`` steps ``last.pt`` is written
+atomically (model, optimiser, scheduler, step); re-running the same command resumes from it. Every
+``val.every`` steps the detector is scored on a fixed set of generated drawings (one-to-one F1
+within 5 px and classification accuracy). At the end ``keypoints.pt`` (fp16 weights + network
+config + training record) is exported: copy it to stages/keypoints/weights/ to ship it.
+
+The training loop needs only torch, numpy, scipy, scikit-image and numba (and rich if present), so
+it also runs where Hydra is not installed: ``python -m pipeline.train --plain conf_dir [key=value…]``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from stages.evaluate.keypoints import MatchResult, match_keypoints
+from stages.keypoints.generator import GeneratorConfig, generate
+from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
+from stages.keypoints.labels import LabelRules
+from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
+from stages.keypoints.targets import gaussian_heatmaps, keypoint_loss
+from stages.prep import narrow_band, normalise_contrast
+
+
+# ------------------------------------------------------------------------------------------------
+# Data
+
+
+def prepare_sample(sample, cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Network input, targets and loss band of one generated drawing, as the stage would see it.
+
+    Parameters
+    ----------
+    sample : stages.keypoints.generator.Sample
+    cfg : dict
+        The composed config (``train``, ``keypoints``, ``prep`` sections).
+
+    Returns
+    -------
+    x : numpy.ndarray
+        float32 (H, W) network input (1 = ink).
+    target : numpy.ndarray
+        float32 (4, H, W) Gaussian heatmaps.
+    band : numpy.ndarray
+        float32 (H, W), 1 inside the dilated narrow band.
+    """
+    pc = cfg["prep"]
+    grey = sample.grey
+    try:
+        grey = normalise_contrast(grey.astype(np.float64), pc["contrast"]["low_percentile"],
+                                  pc["contrast"]["high_percentile"], pc["contrast"]["min_contrast"])
+    except Exception:  # blank drawing after styling: leave it as is
+        grey = grey.astype(np.float32)
+    mask = narrow_band(grey, pc["threshold"], pc["repair_passes"], pc["repair_neighbours"], pc["min_component_px"])
+    band = dilate_band(mask, int(cfg["train"]["band_dilation"])).astype(np.float32)
+    x = network_input(grey, float(cfg["keypoints"]["contrast_floor"]))
+    target = gaussian_heatmaps(grey.shape, sample.points, sample.types, float(cfg["train"]["sigma"]))
+    return x, target, band
+
+
+class DrawingStream(torch.utils.data.IterableDataset):
+    """Endless crops of procedural drawings; worker ``k`` draws from seed (seed, start, k)."""
+
+    def __init__(self, cfg: dict, crop: int, start: int):
+        self.cfg, self.crop, self.start = cfg, crop, start
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        wid = info.id if info is not None else 0
+        rng = np.random.default_rng([int(self.cfg["train"]["seed"]), self.start, wid])
+        gcfg = GeneratorConfig.from_dict(self.cfg["train"]["generator"])
+        rules = LabelRules.from_dict(self.cfg["train"]["labels"])
+        per = int(self.cfg["train"]["crops_per_image"])
+        c = self.crop
+        while True:
+            x, t, b = prepare_sample(generate(rng, gcfg, rules), self.cfg)
+            h, w = x.shape
+            ph, pw = max(c - h, 0), max(c - w, 0)
+            if ph or pw:
+                x = np.pad(x, ((0, ph), (0, pw)))
+                t = np.pad(t, ((0, 0), (0, ph), (0, pw)))
+                b = np.pad(b, ((0, ph), (0, pw)))
+                h, w = x.shape
+            for _ in range(per):
+                # Prefer crops that contain ink.
+                for _try in range(4):
+                    i0, j0 = rng.integers(0, h - c + 1), rng.integers(0, w - c + 1)
+                    if b[i0:i0 + c, j0:j0 + c].mean() > 0.01:
+                        break
+                yield (torch.from_numpy(np.ascontiguousarray(x[None, i0:i0 + c, j0:j0 + c])),
+                       torch.from_numpy(np.ascontiguousarray(t[:, i0:i0 + c, j0:j0 + c])),
+                       torch.from_numpy(np.ascontiguousarray(b[None, i0:i0 + c, j0:j0 + c])))
+
+
+def validation_set(cfg: dict) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Fixed generated drawings for validation: (x, band, points, types)."""
+    v = cfg["train"]["val"]
+    rng = np.random.default_rng(int(v["seed"]))
+    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
+    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    out = []
+    for _ in range(int(v["count"])):
+        s = generate(rng, gcfg, rules)
+        x, _, band = prepare_sample(s, cfg)
+        out.append((x, band > 0, s.points, s.types))
+    return out
+
+
+def evaluate(model: KeypointNet, val, kcfg: dict, device: torch.device) -> MatchResult:
+    """One-to-one (5 px) matching result of ``model`` on a validation set."""
+    model.eval()
+    total = MatchResult()
+    with torch.inference_mode():
+        for x, band, pts, types in val:
+            m = model.multiple
+            h, w = x.shape
+            xp = np.pad(x, ((0, m - h % m), (0, m - w % m)))
+            hm = model(torch.from_numpy(xp)[None, None].to(device))[0][0].float().cpu().numpy()[:, :h, :w]
+            p, t, _ = find_keypoints(hm, float(kcfg["threshold"]), int(kcfg["min_distance"]),
+                                     band if kcfg["restrict_to_band"] else None, bool(kcfg["subpixel"]))
+            total = total + match_keypoints(pts, types, p, t, 5.0)
+    model.train()
+    return total
+
+
+# ------------------------------------------------------------------------------------------------
+# Training
+
+
+def _worker_init(_wid: int) -> None:
+    torch.set_num_threads(1)  # workers run numpy/numba only; keep them from oversubscribing cores
+
+
+def _crop_at(schedule, frac: float) -> int:
+    size = int(schedule[0][1])
+    for f, s in schedule:
+        if frac >= float(f):
+            size = int(s)
+    return size
+
+
+def _augment(x, t, b):
+    """Random flips and quarter turns of a batch (labels move with the pixels)."""
+    k = int(torch.randint(0, 4, ()))
+    dims = (-2, -1)
+    if k:
+        x, t, b = (torch.rot90(a, k, dims) for a in (x, t, b))
+    if bool(torch.randint(0, 2, ())):
+        x, t, b = (torch.flip(a, (-1,)) for a in (x, t, b))
+    return x, t, b
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def export_weights(model: KeypointNet, path: Path, record: dict) -> None:
+    """Write the shippable checkpoint: fp16 weights, network config and a training record."""
+    sd = {k: (v.half() if v.is_floating_point() else v) for k, v in model.state_dict().items()}
+    _atomic_save({"network": model.cfg.to_dict(), "state_dict": sd, "record": record}, path)
+
+
+class _Log:
+    """Progress output: rich when available, plain lines otherwise."""
+
+    def __init__(self, total: int, start: int):
+        try:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.console = Console()
+            self.progress = Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
+                                     TimeRemainingColumn(), TextColumn("{task.fields[info]}"),
+                                     console=self.console, disable=not self.console.is_terminal)
+            self.task = self.progress.add_task("train", total=total, completed=start, info="")
+            self.progress.start()
+        except ImportError:  # pragma: no cover - rich is a dependency, but not on every GPU box
+            self.console = self.progress = None
+
+    def update(self, step: int, info: str) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, completed=step, info=info)
+
+    def line(self, text: str) -> None:
+        if self.console is not None:
+            self.console.log(text)
+        else:
+            print(text, flush=True)
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+
+def train(cfg: dict) -> dict:
+    """Train (or resume) the keypoint network.
+
+    Parameters
+    ----------
+    cfg : dict
+        Composed config with sections ``train``, ``keypoints`` and ``prep`` (conf/train_app.yaml).
+
+    Returns
+    -------
+    dict
+        The training record (steps, time, losses, validation figures, paths).
+    """
+    tc = cfg["train"]
+    out = Path(tc["out_dir"])
+    out.mkdir(parents=True, exist_ok=True)
+    seed = int(tc["seed"])
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    dev_name = tc["device"]
+    if dev_name == "auto":
+        dev_name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(dev_name)
+    if device.type == "cpu" and tc.get("cpu_threads"):
+        torch.set_num_threads(int(tc["cpu_threads"]))
+    net_cfg = NetConfig.from_dict(tc["network"])
+    model = KeypointNet(net_cfg).to(device)
+    steps = int(tc["steps"])
+    budget_s = float(tc["schedule_minutes"]) * 60 if tc.get("schedule_minutes") else None
+    lr0 = float(tc["lr"])
+    opt = torch.optim.Adam(model.parameters(), lr=lr0, weight_decay=float(tc["weight_decay"]))
+    start, elapsed0 = 0, 0.0
+    history: list[dict] = []
+    last = out / "last.pt"
+    if tc["resume"] and last.is_file():
+        ck = torch.load(last, map_location=device, weights_only=False)
+        if ck["network"] != net_cfg.to_dict():
+            raise SystemExit(f"{last} was trained with network {ck['network']}, config asks for {net_cfg.to_dict()}")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        start, history, elapsed0 = int(ck["step"]), ck.get("history", []), float(ck.get("elapsed_s", 0.0))
+    (out / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
+
+    workers = tc["num_workers"]
+    workers = max(1, (os.cpu_count() or 2) - 1) if workers == "auto" else int(workers)
+    val = validation_set(cfg)
+    use_amp = bool(tc["amp"]) and device.type == "cuda"
+    if device.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    log = _Log(steps, start)
+    log.line(f"network {net_cfg.to_dict()}: {count_parameters(model)} parameters; device {device}; "
+             f"steps {start}->{steps}; workers {workers}")
+    t0 = time.time() - elapsed0
+
+    def progress() -> float:
+        # Fraction of training done: by steps, or by wall time when schedule_minutes is set.
+        if budget_s is not None:
+            return min((time.time() - t0) / budget_s, 1.0)
+        return min(step / steps, 1.0)
+
+    max_s = float(tc["max_minutes"]) * 60 if tc.get("max_minutes") else math.inf
+    step = start
+    run_loss = None
+    stopped_early = False
+    done = False
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+    model.train()
+    while not done and not stopped_early:
+        crop = _crop_at(tc["crop_schedule"], progress())
+        # One loader per crop size; its stream is seeded by the step it starts at (resumable).
+        loader = torch.utils.data.DataLoader(
+            DrawingStream(cfg, crop, step), batch_size=int(tc["batch_size"]), num_workers=workers,
+            pin_memory=device.type == "cuda", persistent_workers=False, worker_init_fn=_worker_init,
+            prefetch_factor=4 if workers > 0 else None)
+        for x, t, b in loader:
+            x, t, b = (a.to(device, non_blocking=True) for a in (x, t, b))
+            x, t, b = _augment(x, t, b)
+            if device.type == "cuda":
+                x = x.contiguous(memory_format=torch.channels_last)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
+                final, inter = model(x)
+            loss, parts = keypoint_loss(final.float(), [i.float() for i in inter], t, b,
+                                        tuple(float(w) for w in tc["loss_weights"]), float(tc["fp_weight"]))
+            frac = progress()
+            lr = 0.5 * lr0 * (1 + math.cos(math.pi * frac))  # cosine annealing (paper)
+            for g in opt.param_groups:
+                g["lr"] = lr
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            done = step >= steps or (budget_s is not None and frac >= 1.0)
+            lv = float(loss.detach())
+            run_loss = lv if run_loss is None else 0.98 * run_loss + 0.02 * lv
+            log.update(step, f"loss {run_loss:.4f} crop {crop} lr {lr:.2e}")
+            if step % int(tc["log_every"]) == 0:
+                log.line(f"step {step} loss {run_loss:.4f} crop {crop} lr {lr:.2e} "
+                         f"{(step - start) / (time.time() - t0 - elapsed0):.1f} it/s")
+            if step % int(tc["val"]["every"]) == 0 or done:
+                r = evaluate(model, val, cfg["keypoints"], device)
+                rec = {"step": step, "loss": run_loss, "val_f1": r.f1, "val_precision": r.precision,
+                       "val_recall": r.recall, "val_accuracy": r.accuracy, "elapsed_s": time.time() - t0}
+                history.append(rec)
+                log.line(f"step {step} val F1 {r.f1:.3f} (P {r.precision:.3f} R {r.recall:.3f}) "
+                         f"class acc {r.accuracy:.3f}")
+            over = time.time() - t0 - elapsed0 > max_s
+            if step % int(tc["checkpoint_every"]) == 0 or done or over:
+                _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                              "elapsed_s": time.time() - t0, "network": net_cfg.to_dict(),
+                              "history": history}, last)
+            if over and not done:
+                log.line(f"max_minutes reached at step {step}: stopping (resume to continue)")
+                stopped_early = True
+                break
+            if done or _crop_at(tc["crop_schedule"], progress()) != crop:
+                break
+    log.close()
+    record = {"steps": step, "planned_steps": steps, "schedule_minutes": tc.get("schedule_minutes"),
+              "seconds": time.time() - t0, "completed": done, "device": str(device),
+              "device_name": torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu",
+              "parameters": count_parameters(model), "history": history, "final_loss": run_loss,
+              "torch": torch.__version__}
+    model_cpu = KeypointNet(net_cfg)
+    model_cpu.load_state_dict({k: v.float().cpu() for k, v in model.state_dict().items()})
+    export_weights(model_cpu, out / "keypoints.pt", {k: v for k, v in record.items() if k != "history"}
+                   | {"config": cfg["train"], "last_val": history[-1] if history else None})
+    (out / "record.json").write_text(json.dumps(record, indent=2))
+    return record
+
+
+# ------------------------------------------------------------------------------------------------
+# Entry points
+
+
+def _set(d: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        d = d[k]
+    d[keys[-1]] = value
+
+
+def compose_plain(conf_dir: str | Path, overrides: list[str]) -> dict:
+    """Compose train_app's sections from YAML without Hydra (for machines that lack it)."""
+    import yaml
+
+    conf_dir = Path(conf_dir)
+    cfg = {name: yaml.safe_load((conf_dir / name / "default.yaml").read_text())
+           for name in ("train", "keypoints", "prep")}
+    for o in overrides:
+        k, v = o.split("=", 1)
+        _set(cfg, k, yaml.safe_load(v))
+    return cfg
+
+
+def main() -> None:
+    """``polyvec-train`` (Hydra). ``--plain CONF_DIR key=value…`` composes without Hydra."""
+    if len(sys.argv) > 2 and sys.argv[1] == "--plain":
+        train(compose_plain(sys.argv[2], sys.argv[3:]))
+        return
+    import hydra
+    from omegaconf import OmegaConf
+
+    @hydra.main(version_base=None, config_path="pkg://conf", config_name="train_app")
+    def _app(cfg) -> None:
+        train(OmegaConf.to_container(cfg, resolve=True))
+
+    _app()
+
+
+if __name__ == "__main__":
+    main()
