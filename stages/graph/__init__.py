@@ -64,6 +64,7 @@ class SectionConfig:
     max_gap: float
     max_section_length: float
     ambiguity: float
+    lane_pad: float
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,7 @@ class CleanupConfig:
     max_cycle_vertices: int
     spur_max_length: float
     spur_min_covered: float
+    tip_hook_angle: float
     join_singular_distance: float
     join_singular_min_hops: int
 
@@ -122,8 +124,8 @@ def _flag_singular_curve_ends(raw: RawGraph, lines: Streamlines, reach: float) -
     return flags
 
 
-def _drop_small(xy, width, edges, counts, min_area):
-    alive = cleanup.remove_small_components(xy, width, edges, counts, min_area)
+def _drop_small(xy, width, edges, min_area):
+    alive = cleanup.remove_small_components(xy, width, edges, min_area)
     return edges[alive[edges[:, 0]]] if len(edges) else edges
 
 
@@ -165,7 +167,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     raw = build_cross_sections(c0, c2, band, singular, lines, step=tc.step, station_spacing=sc.station_spacing,
                                cover_factor=sc.cover_factor, min_station_gap=sc.min_station_gap,
                                max_gap=sc.max_gap, max_section_length=sc.max_section_length,
-                               ambiguity=sc.ambiguity, tie=tc.tie)
+                               ambiguity=sc.ambiguity, tie=tc.tie, lane_pad=sc.lane_pad)
     t2 = time.perf_counter()
     timings["sections_s"] = t2 - t1
     stats = {"streamlines": int(len(lines.start)), "streamline_samples": int(len(lines.xy)),
@@ -194,7 +196,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
         edges, flags, removed = cleanup.remove_singular_branches(len(xy), edges, flags)
     stats["singular_branch_edges_removed"] = removed
     # 3. insignificant components (before the loop search, the costly part)
-    edges = _drop_small(xy, width, edges, counts, cc.min_component_area)
+    edges = _drop_small(xy, width, edges, cc.min_component_area)
     # 4. thickness loops
     edges, n_loops = cleanup.contract_thickness_loops(xy, edges, band, cc.max_loop_background,
                                                       cc.max_cycle_vertices)
@@ -203,15 +205,17 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     edges, n_spurs = cleanup.prune_covered_spurs(xy, width, counts, edges, cc.spur_max_length,
                                                  cc.spur_min_covered)
     stats["spurs_pruned"] = n_spurs
+    edges, n_tips = cleanup.trim_hooked_tips(xy, width, edges, cc.tip_hook_angle)
+    stats["hooked_tips_trimmed"] = n_tips
     # 6. joins across singularities
     if cc.join_singular_distance > 0:
-        added = cleanup.join_singular_ends(xy, edges, flags, band, cc.join_singular_distance,
+        added = cleanup.join_singular_ends(xy, width, edges, flags, band, singular, cc.join_singular_distance,
                                            cc.join_singular_min_hops)
     else:
         added = np.zeros((0, 2), np.int64)
     stats["singular_joins"] = int(len(added))
     edges = np.concatenate([edges, added]).astype(np.int64)
-    edges = _drop_small(xy, width, edges, counts, cc.min_component_area)
+    edges = _drop_small(xy, width, edges, cc.min_component_area)
     deg = np.bincount(edges.ravel(), minlength=len(xy))
     final = np.flatnonzero(deg > 0)
     new_of = np.full(len(xy), -1, np.int64)

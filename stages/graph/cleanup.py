@@ -13,10 +13,11 @@ Steps, in the order :func:`stages.graph.run` applies them:
 2. :func:`remove_singular_branches` — ``contractSingularityBranches``: on a dangling chain (free end at
    one side, a junction at the other) edges are deleted from the free end while the vertex there is
    flagged *next to singularity*; the vertex left at the cut gets the flag.
-3. :func:`remove_small_components` — ``simpleThresholds``: a component goes if no vertex crosses more
-   than one streamline, or if its bounding box, padded by each vertex's half width, is smaller than
-   ``min_component_area`` px².  (The reference pads nothing, which drops long 1-px-thin axis-aligned
-   strokes whose box has zero area.)
+3. :func:`remove_small_components` — ``simpleThresholds``: a component goes if its bounding box,
+   padded by each vertex's half width (at least 0.5 px), is smaller than ``min_component_area`` px².
+   The reference pads nothing, which drops long axis-aligned strokes whose box has zero area; it
+   also drops every component in which no vertex crosses more than one streamline, which we do not:
+   a one-pixel-wide axis-aligned stroke has exactly one lane, and specks are small anyway.
 4. :func:`contract_thickness_loops` — ``contractLoops``: the shortest cycle through every edge not in
    a BFS spanning forest is drawn as a polygon through its vertices; if it encloses at most
    ``max_loop_background`` background pixels (pixel centres off the band) it is a thickness loop, not a
@@ -143,7 +144,7 @@ def remove_singular_branches(n: int, edges: np.ndarray, flags: np.ndarray) -> tu
     return _edges_from_adj(adj), flags, removed
 
 
-def remove_small_components(xy, width, edges, crossing_count, min_area) -> np.ndarray:
+def remove_small_components(xy, width, edges, min_area) -> np.ndarray:
     """Vertices to keep after dropping insignificant components (module docstring, step 3).
 
     Parameters
@@ -152,8 +153,6 @@ def remove_small_components(xy, width, edges, crossing_count, min_area) -> np.nd
         Vertex positions and widths.
     edges : numpy.ndarray
         (E, 2).
-    crossing_count : numpy.ndarray
-        Number of streamlines in each vertex's cross-section.
     min_area : float
         Components whose padded bounding box is smaller (px²) are dropped.
 
@@ -167,16 +166,13 @@ def remove_small_components(xy, width, edges, crossing_count, min_area) -> np.nd
         return np.zeros(0, bool)
     g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
     ncomp, lab = csgraph.connected_components(g, directed=False)
-    r = np.maximum(width, 0) / 2
+    r = np.maximum(width / 2, 0.5)
     lo_x = np.full(ncomp, np.inf); hi_x = np.full(ncomp, -np.inf)
     lo_y = np.full(ncomp, np.inf); hi_y = np.full(ncomp, -np.inf)
     np.minimum.at(lo_x, lab, xy[:, 0] - r); np.maximum.at(hi_x, lab, xy[:, 0] + r)
     np.minimum.at(lo_y, lab, xy[:, 1] - r); np.maximum.at(hi_y, lab, xy[:, 1] + r)
     area = (hi_x - lo_x) * (hi_y - lo_y)
-    many = np.zeros(ncomp, bool)
-    np.logical_or.at(many, lab, crossing_count > 1)
-    good = many & (area >= min_area)
-    return good[lab]
+    return (area >= min_area)[lab]
 
 
 def _shortest_cycle_path(adj, a, b, limit):
@@ -418,25 +414,36 @@ def prune_covered_spurs(xy, width, strength, edges, max_length, min_covered):
     return _edges_from_adj(adj), removed
 
 
-def join_singular_ends(xy, edges, flags, band, max_distance, min_hops):
+def join_singular_ends(xy, width, edges, flags, band, singular, max_distance, min_hops):
     """Join dangling ends next to singularities across them (B19 ``connectStuffAroundSingularities``).
 
-    Each leaf flagged *next to singularity* is joined to the nearest other flagged vertex within
-    ``max_distance`` px that lies ahead of it (the segment continues the leaf's edge direction), whose
-    straight segment stays in the band, and that is more than ``min_hops`` edges away in the graph (or in
-    another component).  This is what gives a Y junction, where the field has a singularity and the
-    traces stop, its valence-3 vertex.
+    A vertex counts as next to a singularity if it is flagged (its cross-section or one of its
+    streamlines stopped on a singular pixel) or if a singular pixel lies within ``width/2 + 1`` px of
+    it (traces stopping short of a singularity leave their last, small cross-sections just outside
+    it, unflagged).  Each such leaf is joined to the nearest other such vertex within ``max_distance``
+    px that lies ahead of it (the segment continues the leaf's edge direction), whose straight segment
+    stays in the band, and that is more than ``min_hops`` edges away in the graph (or in another
+    component).  This is what gives a Y junction, where the field has a singularity and the traces
+    stop, its valence-3 vertex.
 
     Returns
     -------
     new_edges : numpy.ndarray
         (K, 2) the added edges (``edge_curve`` −1 in the artifact).
     """
+    from scipy.ndimage import distance_transform_edt
     from scipy.spatial import cKDTree
 
+    if singular.any():
+        dist = distance_transform_edt(~singular)
+        i = np.clip(np.floor(xy[:, 1]).astype(int), 0, band.shape[0] - 1)
+        j = np.clip(np.floor(xy[:, 0]).astype(int), 0, band.shape[1] - 1)
+        near = (flags & 1).astype(bool) | (dist[i, j] <= width / 2 + 1)
+    else:
+        near = (flags & 1).astype(bool)
     n = len(xy)
     adj = _adjacency(n, edges)
-    flagged = np.flatnonzero(flags & 1)
+    flagged = np.flatnonzero(near)
     if len(flagged) < 2:
         return np.zeros((0, 2), np.int64)
     tree = cKDTree(xy[flagged])
@@ -494,3 +501,47 @@ def _hops_within(adj, a, b, hops):
                     nxt.append(u)
         frontier = nxt
     return False
+
+
+def trim_hooked_tips(xy, width, edges, min_angle_deg):
+    """Drop leaf vertices that hook sideways inside their neighbour's disc.
+
+    At a stroke's rounded tip the field turns with the outline and the last, small cross-sections
+    can land off the centre line.  A leaf ``v`` whose neighbour ``u`` continues a chain (degree 2,
+    other neighbour ``p``) is removed when it lies inside ``u``'s disc (``|v − u| ≤ max(width_u/2,
+    0.5)``, so no coverage is lost) and the step ``u → v`` turns by more than ``min_angle_deg`` from
+    ``p → u``.  Repeated while it applies.  Not in the references.
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        Remaining edges.
+    removed : int
+        Number of tips removed.
+    """
+    n = len(xy)
+    adj = _adjacency(n, edges)
+    cos_max = np.cos(np.deg2rad(min_angle_deg))
+    removed = 0
+    todo = [v for v in range(n) if len(adj[v]) == 1]
+    while todo:
+        v = todo.pop()
+        if len(adj[v]) != 1:
+            continue
+        u = next(iter(adj[v]))
+        if len(adj[u]) != 2:
+            continue
+        p = next(q for q in adj[u] if q != v)
+        a = xy[u] - xy[p]
+        b = xy[v] - xy[u]
+        nb = np.hypot(*b)
+        na = np.hypot(*a)
+        if nb > max(width[u] / 2, 0.5) or na == 0 or nb == 0:
+            continue
+        if float(a @ b) / (na * nb) >= cos_max:
+            continue
+        adj[v].discard(u)
+        adj[u].discard(v)
+        removed += 1
+        todo.append(u)
+    return _edges_from_adj(adj), removed

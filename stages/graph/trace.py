@@ -39,7 +39,7 @@ from numba import njit
 LEFT, SINGULAR, MERGED, CAP, DEGENERATE = 0, 1, 2, 3, 4
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def coeffs_at(c0, c2, x, y):
     """Bilinear c0, c2 at point (x, y) (pixel centres at +0.5); outside the image counts as 0."""
     h, w = c0.shape
@@ -66,14 +66,14 @@ def coeffs_at(c0, c2, x, y):
     return a0, a2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def quartic_roots(a0, a2):
     """Roots u, v of z⁴ + a2 z² + a0 (the other two are −u, −v); same branches as field.polyvector_roots."""
     disc = cmath.sqrt(a2 * a2 - 4.0 * a0)
     return cmath.sqrt(0.5 * (-a2 + disc)), cmath.sqrt(0.5 * (-a2 - disc))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def choose_direction(u, v, d, tie):
     """Of ±u/|u|, ±v/|v| the unit direction best aligned with ``d`` (B19 ``chooseRoot``).
 

@@ -1,0 +1,333 @@
+"""Tests of the graph stage on synthetic drawings with exact geometry (stages/synthetic.py).
+
+The field is the real ``stages.field`` on the real ``stages.prep`` band; drawings are 64×64, so each
+case takes well under a second once numba's cache is warm (the first run compiles the kernels).
+"""
+
+from __future__ import annotations
+
+import copy
+from functools import lru_cache
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+import pytest
+import yaml
+
+from stages import field, graph, prep, synthetic
+from stages.artifact import Artifact, unpack_ragged
+from stages.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+SHARED = ROOT / ".." / "shared"
+
+
+def _cfg(stage: str) -> dict:
+    return yaml.safe_load((ROOT / "conf" / stage / "default.yaml").read_text())
+
+
+@lru_cache(maxsize=None)
+def _inputs(name: str, **kw) -> tuple[Artifact, Artifact]:
+    drawing = getattr(synthetic, name)(**kw)
+    p = prep.run(_cfg("prep"), image_bytes=drawing.png_bytes(), image_name=name)
+    return p, field.run(_cfg("field"), prep=p)
+
+
+def _inputs_from_grey(grey: np.ndarray) -> tuple[Artifact, Artifact]:
+    """Prep artifact made by hand (no hole repair), so that pinholes survive into the band."""
+    mask = grey < 165 / 255
+    p = Artifact(arrays={"grey": grey.astype(np.float32), "mask": mask})
+    return p, field.run(_cfg("field"), prep=p)
+
+
+def _graph(p: Artifact, f: Artifact, **cleanup) -> Artifact:
+    cfg = copy.deepcopy(_cfg("graph"))
+    cfg["cleanup"].update(cleanup)
+    return graph.run(cfg, prep=p, field=f)
+
+
+def _nx(a: Artifact) -> nx.Graph:
+    g = nx.Graph()
+    g.add_nodes_from(range(len(a["vertex_xy"])))
+    g.add_edges_from(a["edges"].tolist())
+    return g
+
+
+def _line_frame(stroke: np.ndarray, xy: np.ndarray):
+    """(along, across) coordinates of points relative to a straight stroke."""
+    a, b = stroke[0], stroke[-1]
+    d = (b - a) / np.linalg.norm(b - a)
+    n = np.array([-d[1], d[0]])
+    return (xy - a) @ d, (xy - a) @ n
+
+
+def _is_path(g: nx.Graph) -> bool:
+    deg = np.array([d for _, d in g.degree()])
+    return nx.is_connected(g) and deg.max() <= 2 and (deg == 1).sum() == 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Geometry and topology on the synthetic drawings
+# --------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("angle", [17.0, 40.0, 133.0])
+def test_straight_stroke_is_a_centred_path(angle):
+    drawing = synthetic.line(angle=angle)
+    a = _graph(*_inputs("line", angle=angle))
+    g = _nx(a)
+    assert len(a["vertex_xy"]) > 20
+    assert _is_path(g)
+    along, across = _line_frame(drawing.strokes[0], a["vertex_xy"])
+    assert np.abs(across).max() <= 0.5
+    # the chain spans the stroke (from cap to cap)
+    length = np.linalg.norm(drawing.strokes[0][1] - drawing.strokes[0][0])
+    assert along.min() < 1.5 and along.max() > length - 1.5
+    # widths: away from the rounded caps the cross-section is the full stroke
+    inner = (along > drawing.width) & (along < length - drawing.width)
+    assert np.abs(a["vertex_width"][inner] - drawing.width).max() <= 1.0
+    assert np.abs(a["vertex_width_raw"][inner] - drawing.width).max() <= 1.0
+
+
+def test_axis_aligned_stroke_width_counts_the_outer_lanes():
+    """Lanes sit on pixel centres 1 px apart: the bare diameter (reference) would be 1 px short."""
+    drawing = synthetic.line(angle=0.0, width=3.0, size=63)  # centre line through pixel centres
+    a = _graph(*_inputs("line", angle=0.0, width=3.0, size=63))
+    assert _is_path(_nx(a))
+    along, across = _line_frame(drawing.strokes[0], a["vertex_xy"])
+    inner = (along > 3) & (along < 41)
+    assert np.abs(across[inner]).max() < 0.05
+    # three lanes, two gaps of 1 px: diameter 2 + half a lane spacing
+    np.testing.assert_allclose(a["vertex_width_raw"][inner], 2.5, atol=0.05)
+
+
+def test_single_lane_cross_section_has_positive_width():
+    """A one-pixel-wide band has one lane per cross-section: width = half a pixel, never 0."""
+    grey = np.ones((40, 60), np.float32)
+    grey[20, 5:55] = 0.0
+    a = _graph(*_inputs_from_grey(grey))
+    assert len(a["vertex_xy"]) > 10
+    assert (a["vertex_width_raw"] > 0).all()
+    np.testing.assert_allclose(np.median(a["vertex_width_raw"]), 0.5, atol=0.05)
+
+
+def test_circle_is_one_cycle():
+    a = _graph(*_inputs("circle"))
+    g = _nx(a)
+    assert nx.is_connected(g)
+    assert all(d == 2 for _, d in g.degree())
+    assert len(nx.cycle_basis(g)) == 1
+    r = np.linalg.norm(a["vertex_xy"] - 32.0, axis=1)
+    assert np.abs(r - 20.0).max() <= 0.5
+
+
+def test_x_crossing_gives_two_overlapping_branches_without_shared_vertex():
+    drawing = synthetic.cross()
+    a = _graph(*_inputs("cross"))
+    g = _nx(a)
+    comps = [sorted(c) for c in nx.connected_components(g)]
+    assert len(comps) == 2
+    centre = np.array([32.0, 32.0])
+    used = set()
+    for comp in comps:
+        assert _is_path(g.subgraph(comp))
+        xy = a["vertex_xy"][comp]
+        # each branch follows one stroke...
+        offs = [np.abs(_line_frame(s, xy)[1]).max() for s in drawing.strokes]
+        k = int(np.argmin(offs))
+        assert offs[k] <= 0.75
+        used.add(k)
+        # ... straight through the crossing
+        assert np.linalg.norm(xy - centre, axis=1).min() <= 1.0
+    assert used == {0, 1}
+
+
+def test_t_junction_gives_two_components():
+    drawing = synthetic.tee()
+    a = _graph(*_inputs("tee"))
+    g = _nx(a)
+    comps = [sorted(c) for c in nx.connected_components(g)]
+    assert len(comps) == 2
+    for comp in comps:
+        assert _is_path(g.subgraph(comp))
+    # the stem's branch reaches the bar
+    bar, stem = drawing.strokes
+    stem_comp = min(comps, key=lambda c: np.abs(_line_frame(stem, a["vertex_xy"][c])[1]).max())
+    assert np.linalg.norm(a["vertex_xy"][stem_comp] - stem[0], axis=1).min() <= 1.5
+
+
+def test_y_junction_has_one_valence_three_vertex_near_its_centre():
+    a = _graph(*_inputs("wye"))
+    g = _nx(a)
+    assert nx.is_connected(g)
+    deg = np.array([d for _, d in g.degree()])
+    assert (deg >= 3).sum() == 1 and deg.max() == 3
+    assert (deg == 1).sum() == 3
+    v = int(np.flatnonzero(deg == 3)[0])
+    assert np.linalg.norm(a["vertex_xy"][v] - 32.0) <= 2.5
+
+
+def test_y_junction_needs_the_join_across_the_singularity():
+    """Without the join the traces stopped by the singularity leave the Y in pieces."""
+    a = _graph(*_inputs("wye"), join_singular_distance=0.0)
+    assert not nx.is_connected(_nx(a))
+
+
+def _pinhole_stroke() -> np.ndarray:
+    grey = synthetic.line(angle=17.0, width=7.0).grey.copy()
+    grey[32:34, 32:34] = 1.0  # 4 background pixels inside the stroke
+    return grey
+
+
+def test_pinhole_loop_is_contracted():
+    p, f = _inputs_from_grey(_pinhole_stroke())
+    assert (~p["mask"][31:35, 31:35]).sum() == 4 and not p["mask"][32:34, 32:34].any()
+    a = _graph(p, f)
+    g = _nx(a)
+    assert a.data["counts"]["loops_contracted"] >= 1
+    assert nx.is_connected(g) and len(nx.cycle_basis(g)) == 0
+
+
+def test_pinhole_loop_stays_when_contraction_is_disabled():
+    a = _graph(*_inputs_from_grey(_pinhole_stroke()), max_loop_background=0)
+    assert len(nx.cycle_basis(_nx(a))) >= 1
+
+
+def test_small_ring_keeps_its_real_hole():
+    a = _graph(*_inputs("circle", radius=5.0))
+    g = _nx(a)
+    assert nx.is_connected(g) and len(nx.cycle_basis(g)) == 1
+
+
+# --------------------------------------------------------------------------------------------------
+# The artifact contract
+# --------------------------------------------------------------------------------------------------
+
+def test_artifact_follows_the_interface():
+    p, f = _inputs("wye")
+    a = _graph(p, f)
+    v = len(a["vertex_xy"])
+    assert a["vertex_xy"].dtype == np.float64 and a["vertex_xy"].shape == (v, 2)
+    for name in ("vertex_width", "vertex_width_raw"):
+        assert a[name].dtype == np.float64 and a[name].shape == (v,)
+    assert a["vertex_root"].dtype == np.complex64
+    np.testing.assert_allclose(np.abs(a["vertex_root"]), 1.0, atol=1e-5)
+    assert a["vertex_flags"].dtype == np.uint8 and (a["vertex_flags"] & 1).any()
+    e = a["edges"]
+    assert e.dtype == np.int32 and e.shape[1] == 2 and (e[:, 0] < e[:, 1]).all()
+    assert len(np.unique(e, axis=0)) == len(e) and e.max() < v
+    assert a["edge_curve"].dtype == np.int32 and a["edge_curve"].shape == (len(e),)
+    n_lines = len(a["streamline_xy_offsets"]) - 1
+    assert (a["edge_curve"] < n_lines).all() and (a["edge_curve"] == -1).sum() >= 1  # the Y join
+    members = unpack_ragged(a["vertex_members"], a["vertex_members_offsets"])
+    assert len(members) == v and all(len(m) >= 1 for m in members)
+    assert a["vertex_members"].dtype == np.int32 and a["vertex_members"].max() < n_lines
+    # an edge from a streamline joins two vertices that both hold it
+    for (i, j), c in zip(e, a["edge_curve"]):
+        if c >= 0:
+            assert c in members[i] and c in members[j]
+    lines = unpack_ragged(a["streamline_xy"], a["streamline_xy_offsets"])
+    assert a["streamline_xy"].dtype == np.float32 and all(len(s) >= 2 for s in lines)
+    # streamlines stay in the band
+    ij = np.floor(a["streamline_xy"][:, ::-1]).astype(int)
+    assert p["mask"][ij[:, 0], ij[:, 1]].all()
+    # vertices sit on the band
+    ij = np.floor(a["vertex_xy"][:, ::-1]).astype(int)
+    assert p["mask"][ij[:, 0], ij[:, 1]].mean() > 0.95
+    # widths are smoothed, within the raw range
+    assert a["vertex_width"].min() >= a["vertex_width_raw"].min() - 1e-9
+    assert a["vertex_width"].max() <= a["vertex_width_raw"].max() + 1e-9
+    assert np.std(np.diff(a["vertex_width"])) <= np.std(np.diff(a["vertex_width_raw"]))
+    assert {"counts", "timings"} <= set(a.data)
+
+
+def test_graph_is_deterministic():
+    p, f = _inputs("cross")
+    a, b = _graph(p, f), _graph(p, f)
+    for k in a.arrays:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_render_graph_draws_over_the_drawing():
+    p, f = _inputs("circle")
+    a = _graph(p, f)
+    img = graph.render_graph(p["grey"], a.arrays, scale=3)
+    assert img.dtype == np.uint8 and img.shape == (64 * 3, 64 * 3, 3)
+    # coloured (non-grey) pixels where the graph is drawn, none in the far corner
+    colour = np.ptp(img.astype(int), axis=2) > 60
+    assert colour.sum() > 500 and not colour[:20, :20].any()
+    # without the graph nothing is coloured
+    empty = graph.render_graph(p["grey"], {}, scale=3)
+    assert not (np.ptp(empty.astype(int), axis=2) > 60).any()
+
+
+# --------------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------------
+
+def test_empty_band_gives_an_empty_graph():
+    grey = np.ones((20, 20), np.float32)
+    p = Artifact(arrays={"grey": grey, "mask": np.zeros((20, 20), bool)})
+    a = _graph(p, field.run(_cfg("field"), prep=p))
+    assert len(a["vertex_xy"]) == 0 and len(a["edges"]) == 0
+    assert len(a["streamline_xy_offsets"]) == 1 and len(a["vertex_members_offsets"]) == 1
+
+
+def test_missing_or_mismatched_inputs_raise_input_error():
+    p, f = _inputs("line")
+    with pytest.raises(InputError):
+        graph.run(_cfg("graph"), prep=p)
+    bad = Artifact(arrays={**f.arrays, "c0": f["c0"][:-1]})
+    with pytest.raises(InputError):
+        graph.run(_cfg("graph"), prep=p, field=bad)
+    nan = Artifact(arrays={**f.arrays, "c2": np.full_like(f["c2"], np.nan)})
+    with pytest.raises(InputError):
+        graph.run(_cfg("graph"), prep=p, field=nan)
+    no_roots = Artifact(arrays={k: v for k, v in f.arrays.items() if k != "roots"})
+    with pytest.raises(InputError):
+        graph.run(_cfg("graph"), prep=p, field=no_roots)
+
+
+def test_config_must_match_the_yaml_keys():
+    p, f = _inputs("line")
+    cfg = _cfg("graph")
+    cfg["trace"]["steps"] = 0.1
+    with pytest.raises(InputError):
+        graph.run(cfg, prep=p, field=f)
+    cfg = _cfg("graph")
+    del cfg["store_every"]
+    with pytest.raises(InputError):
+        graph.run(cfg, prep=p, field=f)
+
+
+# --------------------------------------------------------------------------------------------------
+# Real drawing (shared data)
+# --------------------------------------------------------------------------------------------------
+
+@pytest.mark.shared
+@pytest.mark.slow
+def test_scanned_drawing_crop_graph_is_centred_on_the_strokes():
+    path = SHARED / "data" / "drawings" / "scanned" / "kitten.png"
+    if not path.exists():
+        pytest.skip("shared data absent")
+    from PIL import Image
+    import io
+
+    img = Image.open(path).convert("L").crop((150, 280, 330, 420))  # eyes and brows
+    buf = io.BytesIO()
+    img.save(buf, "PNG")
+    p = prep.run(_cfg("prep"), image_bytes=buf.getvalue(), image_name="kitten-crop")
+    f = field.run(_cfg("field"), prep=p)
+    a = _graph(p, f)
+    xy = a["vertex_xy"]
+    assert len(xy) > 200
+    ij = np.floor(xy[:, ::-1]).astype(int)
+    assert p["mask"][ij[:, 0], ij[:, 1]].mean() > 0.97
+    # centred: a vertex is about as far from the band's edge as its half width
+    from scipy.ndimage import distance_transform_edt
+
+    inside = distance_transform_edt(p["mask"])[ij[:, 0], ij[:, 1]]
+    ok = np.abs(inside - a["vertex_width"] / 2) <= 1.5
+    assert ok.mean() > 0.85
+    deg = np.bincount(a["edges"].ravel(), minlength=len(xy))
+    assert (deg == 2).mean() > 0.8
