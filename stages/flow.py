@@ -501,6 +501,24 @@ def _path_energy(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, home):
 
 
 @numba.njit(cache=True)
+def _discrete_gradient(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, home):
+    """∂E_ε/∂z_j (as x + iy) of every vertex from the kernel's edge coefficients (tests use this)."""
+    grad = np.zeros(n, np.complex128)
+    for j in range(1, n):
+        t = z[j] - z[j - 1]
+        m = 0.5 * (z[j] + z[j - 1])
+        g, kg, gx, gy, ln, q = _edge_terms(fld, t, m, eps)
+        h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, home[j])
+        home[j] = h
+        b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
+        kt = ((g + b + lam) / q + kg) * t
+        pt = 0.5 * q * complex(gx + bx, gy + by)
+        grad[j] += kt + pt
+        grad[j - 1] += -kt + pt
+    return grad
+
+
+@numba.njit(cache=True)
 def _resample(z, n, tmp, home, home_tmp):
     """Uniform arc-length resampling of z[:n] in place (ends kept); carries the home indices."""
     cum = np.empty(n)
@@ -535,7 +553,7 @@ def _resample(z, n, tmp, home, home_tmp):
 
 @numba.njit(cache=True, parallel=True)
 def _flow_kernel(z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterations, dt, lam, eps,
-                 resample_factor, cut2, d0, smin, smax, e_init, e_final, n_resample, failed):
+                 resample_factor, cut2, d0, smin, smax, e_init, e_final, n_resample, n_reject, failed):
     """Run the PolyVector flow on every path block (in place on ``z`` and ``home``)."""
     npath = zoff.shape[0] - 1
     for p in numba.prange(npath):
@@ -554,17 +572,21 @@ def _flow_kernel(z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterati
         for j in range(1, n):
             ell += abs(zp[j] - zp[j - 1])
         ell /= (n - 1)
-        cp = np.empty(n, np.complex128)
+        cp = np.empty(n)
         dp = np.empty(n, np.complex128)
         tmp = np.empty(n, np.complex128)
+        zprev = zp.copy()
         htmp = np.empty(n, np.int64)
-        inv2dt = 1.0 / (2.0 * dt)
         lim2 = (resample_factor * ell) ** 2
-        for it in range(iterations):
-            # One pass: edge j's coefficients complete row j − 1 (vertex j − 1), which is assembled
-            # and forward-eliminated at once (Thomas algorithm); back substitution follows.
-            k_prev = 0j
-            a_prev = 0j
+        dtp = dt
+        e_last = np.inf
+        for it in range(iterations + 1):
+            # One pass over the edges: edge j's terms complete row j − 1 (vertex j − 1), which is
+            # assembled and forward-eliminated at once (Thomas); the energy comes for free.
+            inv2dt = 1.0 / (2.0 * dtp)
+            e_cur = 0.0
+            k_prev = 0.0
+            f_prev = 0j
             q_prev = 0.0
             d_prev = 0.0
             for j in range(1, n):
@@ -574,37 +596,44 @@ def _flow_kernel(z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterati
                 h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, hp[j])
                 hp[j] = h
                 b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
-                k_cur = (g + b + lam) / q + kg
-                if ln > 1e-12:
-                    # a t = (q/2) F n with F = <∇(g + B), n>, n = i t/|t|: normal part of the force.
-                    f_n = ((gx + bx) * -t.imag + (gy + by) * t.real) / ln
-                    a_cur = 1j * (f_n * q / (2.0 * ln))
-                else:
-                    a_cur = 0j
+                w = g + b + lam
+                e_cur += w * q
+                k_cur = w / q                                    # implicit: isotropic length
+                ft = kg * t                                      # explicit: anisotropy, ∂(q g)/∂t
+                fm = (0.5 * q) * complex(gx + bx, gy + by)       # explicit: ∂(W q)/∂z via m
                 d_cur = dist[c0i + h]
                 if j >= 2:
                     r = j - 2
                     d = 0.5 * (d_prev + d_cur)
                     s = smax if d <= 0.0 else min(max(d0 / d, smin), smax)
                     mass = (q_prev + q) * inv2dt / s
-                    sub = -k_prev - a_prev
-                    dia = mass + k_prev + k_cur + a_prev - a_cur
-                    sup = -k_cur + a_cur
-                    rhs = mass * zp[j - 1]
+                    dia = mass + k_prev + k_cur
+                    # Vertex j − 1 ends edge j − 1 and starts edge j.
+                    rhs = mass * zp[j - 1] - (f_prev + fm - ft)
                     if r == 0:
-                        rhs -= sub * zp[0]
+                        rhs += k_prev * zp[0]
                     else:
-                        dia -= sub * cp[r - 1]
-                        rhs -= sub * dp[r - 1]
+                        dia += k_prev * cp[r - 1]
+                        rhs += k_prev * dp[r - 1]
                     if j == n - 1:
-                        rhs -= sup * zp[n - 1]
-                    inv = dia.conjugate() / (dia.real * dia.real + dia.imag * dia.imag)
-                    cp[r] = sup * inv
-                    dp[r] = rhs * inv
+                        rhs += k_cur * zp[n - 1]
+                    cp[r] = -k_cur / dia
+                    dp[r] = rhs / dia
                 k_prev = k_cur
-                a_prev = a_cur
+                f_prev = ft + fm
                 q_prev = q
                 d_prev = d_cur
+            if e_cur > e_last + 1e-12 * abs(e_last):
+                # The last step raised the energy: undo it and halve this path's step.
+                for j in range(n):
+                    zp[j] = zprev[j]
+                dtp *= 0.5
+                n_reject[p] += 1
+                continue
+            if it == iterations:
+                break
+            e_last = e_cur
+            dtp = min(dt, dtp * 1.25)
             m_ = n - 2
             tmp[m_ - 1] = dp[m_ - 1]
             acc = tmp[m_ - 1].real + tmp[m_ - 1].imag
@@ -614,6 +643,8 @@ def _flow_kernel(z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterati
             if not math.isfinite(acc):
                 failed[p] = it + 1
                 break
+            for j in range(n):
+                zprev[j] = zp[j]
             for r in range(m_):
                 zp[r + 1] = tmp[r]
             longest = 0.0
@@ -623,6 +654,7 @@ def _flow_kernel(z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterati
             if longest > lim2:
                 _resample(zp, n, tmp, hp, htmp)
                 n_resample[p] += 1
+                e_last = np.inf   # another discretisation: energies are not comparable
         e_final[p] = _path_energy(zp, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, hp)
 
 
@@ -657,6 +689,7 @@ class FlowResult:
     energies_initial: np.ndarray
     resamples: np.ndarray
     failed: np.ndarray
+    rejected: np.ndarray
 
 
 def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], widths: list[np.ndarray],
@@ -682,19 +715,20 @@ def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], width
     npath = len(xys)
     if npath == 0:
         z = np.zeros(0)
-        return FlowResult([], z, z.copy(), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return FlowResult([], z, z.copy(), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
     batch = prepare_paths(xys, widths, interest, params)
     e0 = np.zeros(npath)
     e1 = np.zeros(npath)
     nres = np.zeros(npath, np.int64)
     failed = np.zeros(npath, np.int64)
+    nrej = np.zeros(npath, np.int64)
     _flow_kernel(batch.z, batch.zoff, batch.centres, batch.sigma, batch.rho2, batch.dist, batch.coff, batch.home,
                  batch.window, _pack_field(c0, c2), params.iterations, params.dt, params.lam, params.eps,
                  params.resample_factor, params.barrier_cutoff ** 2, params.step_d0, params.step_min,
-                 params.step_max, e0, e1, nres, failed)
+                 params.step_max, e0, e1, nres, nrej, failed)
     curves = [np.stack([batch.z[a:b].real, batch.z[a:b].imag], axis=1)
               for a, b in zip(batch.zoff[:-1], batch.zoff[1:])]
-    return FlowResult(curves, e1, e0, nres, failed)
+    return FlowResult(curves, e1, e0, nres, failed, nrej)
 
 
 def path_energy(c0: np.ndarray, c2: np.ndarray, xy: np.ndarray, centres: np.ndarray, sigmas: np.ndarray,
@@ -782,5 +816,6 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         data={"energies": [float(e) for e in res.energies],
               "energies_initial": [float(e) for e in res.energies_initial],
               "resamples": int(res.resamples.sum()),
+              "rejected_steps": int(res.rejected.sum()),
               "failed": [int(p["id"]) for p, f in zip(paths, res.failed) if f],
               "n_vertices": int(len(flat))})
