@@ -115,7 +115,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         raise InputError("topology: keypoint positions are not finite")
     out = extract_topology(conf, mask, roots, _array(graph, "vertex_xy", "graph"),
                            _array(graph, "vertex_width", "graph"), _array(graph, "vertex_root", "graph"),
-                           _array(graph, "edges", "graph"), points, types)
+                           _array(graph, "edges", "graph"), points, types,
+                           graph.arrays.get("vertex_flags"))
     cov, cov_off = pack_ragged(out["coverage"], np.int32)
     return Artifact(
         arrays={"coverage": cov.astype(np.int32), "coverage_offsets": cov_off,

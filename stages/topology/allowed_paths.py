@@ -13,6 +13,13 @@ a search budget per key vertex (best-first, so what a cut drops is the longest).
 cut budget) gets its non-key end nodes promoted to synthetic key vertices (type 0) and the
 enumeration is repeated, so the allowed paths always cover the whole subgraph.
 
+Junction zones (a choice beyond the paper): the graph rarely puts a Y junction's keypoint exactly on
+its valence-3 vertex — the key vertex lands on one branch a pixel or two away, or the junction is a
+small cluster of valence-3 vertices.  Paths between other key vertices could then bypass it.  A path
+whose interior comes within ``junction_zone_px`` (along the subgraph) of a junction key vertex must
+therefore end at it, pass through it, or end elsewhere inside that zone (at a synthetic key vertex
+promoted there).
+
 Pass-through (a choice beyond the paper, see the package docstring): a junction key vertex (type 3)
 of subgraph valence 2 — the keypoint of an X, or a T seen from its bar — is also passable: paths may
 end there *or* run straight through it (at most ``max_pass_through`` of them), so an X yields both
@@ -25,6 +32,8 @@ import heapq
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
 
 
 @dataclass
@@ -93,7 +102,7 @@ def _chains(g, sub_arc: np.ndarray, nodes: set, arc_len: np.ndarray, vertices) -
 
 def _best_first_from(s: int, g, chains: list, by_start: dict, terminals: dict, through: set, gdeg,
                      turn_ptr, turn_ok, max_pass_through: int, max_per_pair: int, max_steps: int,
-                     found: dict) -> bool:
+                     found: dict, zone_owner: dict) -> bool:
     """Allowed paths from key vertex ``s``, shortest first, into ``found`` (canonical vertex tuple →
     (length, chain sequence, flipped)).  Partial paths are a tree of parent pointers; a pair of key
     vertices stops collecting after ``max_per_pair`` paths.  Returns whether ``max_steps`` cut it."""
@@ -127,7 +136,11 @@ def _best_first_from(s: int, g, chains: list, by_start: dict, terminals: dict, t
                 for k in seq:
                     verts += chains[k].vertices[1:]
                 key = min(tuple(verts), tuple(verts[::-1]))
-                if key not in found:
+                # Entering a junction's zone is fine for a path that ends (or passes) there.
+                allowed_owners = {s, y, zone_owner.get(s, -1), zone_owner.get(y, -1)} | \
+                    {v for v in verts[1:-1] if v in terminals}
+                bypass = any(zone_owner.get(v, -1) not in (-1, *allowed_owners) for v in verts[1:-1])
+                if key not in found and not bypass:
                     found[key] = (length, tuple(seq), key != tuple(verts))
                     per_pair[y] = per_pair.get(y, 0) + 1
             cont = y in through and passes < max_pass_through and y != s
@@ -145,9 +158,26 @@ def _best_first_from(s: int, g, chains: list, by_start: dict, terminals: dict, t
     return False
 
 
+def _junction_zones(g, sub_arc: np.ndarray, v0: int, v1: int, arc_len: np.ndarray, junctions: set,
+                    zone_px: float) -> dict:
+    """Vertex → the junction key vertex whose zone (subgraph distance ≤ ``zone_px``) it lies in."""
+    if not junctions or zone_px <= 0:
+        return {}
+    a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+    w = np.where(sub_arc[a0:a1], arc_len[a0:a1], 0.0)
+    csr = sp.csr_matrix((w, g.indices[a0:a1] - v0, g.indptr[v0:v1 + 1] - a0), shape=(v1 - v0, v1 - v0))
+    csr.eliminate_zeros()
+    src = np.array(sorted(junctions), np.int64) - v0
+    d, _, owner = dijkstra(csr, directed=True, indices=src, limit=zone_px, min_only=True,
+                           return_predecessors=True)
+    near = np.nonzero(np.isfinite(d))[0]
+    return {int(v) + v0: int(owner[v]) + v0 for v in near}
+
+
 def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict, passable: set,
                             turn_ptr, turn_ok, arc_len: np.ndarray, max_pass_through: int,
-                            max_paths_per_pair: int, max_steps: int, max_rounds: int = 20) -> EnumerationResult:
+                            max_paths_per_pair: int, max_steps: int, junctions: set = frozenset(),
+                            zone_px: float = 0.0, max_rounds: int = 20) -> EnumerationResult:
     """Allowed paths of one component's subgraph.
 
     Parameters
@@ -168,6 +198,9 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
         Arc lengths.
     max_pass_through, max_paths_per_pair, max_steps : int
         See ``conf/topology/default.yaml``.
+    junctions : set
+        Junction key vertices (type 3): a path that passes within ``zone_px`` (subgraph distance) of
+        one must end there or pass through it.
 
     Returns
     -------
@@ -184,6 +217,7 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
     result = EnumerationResult()
     if len(in_sub) == 0:
         return result
+    zone_owner = _junction_zones(g, sub_arc, v0, v1, arc_len, junctions, zone_px)
 
     for _ in range(max_rounds):
         nodes = set(int(v) for v in in_sub if sub_deg[v - v0] != 2 or v in terminals)
@@ -202,7 +236,8 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
         for s in sorted(terminals):
             if s in nodes:
                 budget_hit |= _best_first_from(s, g, chains, by_start, terminals, through, gdeg, turn_ptr,
-                                               turn_ok, max_pass_through, max_paths_per_pair, max_steps, found)
+                                               turn_ok, max_pass_through, max_paths_per_pair, max_steps, found,
+                                               zone_owner)
         # Keep the shortest few per pair of key vertices.
         by_pair: dict[tuple, list] = {}
         for key, (length, seq, flipped) in found.items():

@@ -21,6 +21,7 @@ class TopologyConfig:
     robust_min_new_vertices: int
     turn_probe_px: float
     turn_min_cos: float
+    junction_zone_px: float
     pass_through_junctions: bool
     max_pass_through: int
     max_paths_per_pair: int

@@ -24,7 +24,7 @@ from stages.topology.allowed_paths import enumerate_allowed_paths
 from stages.topology.config import TopologyConfig
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
-from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, turn_table
+from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
 from stages.topology.key_vertices import find_key_vertices
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
@@ -80,6 +80,8 @@ class _Extractor:
             g.xy[v] = points[k]                     # trust the keypoint's position (paper §4.2)
         self.arc_len = g.arc_length()
         self.turn_ptr, self.turn_ok = turn_table(g, arc_motions(g, conf.turn_probe_px), conf.turn_min_cos)
+        self.search_turn_ok = near_singularity_only(g, self.turn_ptr, self.turn_ok)
+        self.no_turn_test = np.ones_like(self.turn_ok)
         self.pixel_xy, self.pixel_flat = band_pixels(self.mask)
         pix, ver = edge_coverage(g.xy, g.width, g.edges, self.comp_of, self.pixel_xy, conf.coverage_margin_px)
         self.cov = CoverageState(len(self.pixel_xy), self.n, pix, ver)
@@ -104,9 +106,10 @@ class _Extractor:
         self._loop_a(c)
         self._loop_b(c, csr, v0)
         passable = {v for v, (k, t) in term.items() if t == 3} if conf.pass_through_junctions else set()
+        junctions = {v for v, (k, t) in term.items() if t == 3}
         res = enumerate_allowed_paths(g, self.sub_edge, c, term, passable, self.turn_ptr, self.turn_ok,
                                       self.arc_len, conf.max_pass_through, conf.max_paths_per_pair,
-                                      conf.max_enumeration_steps)
+                                      conf.max_enumeration_steps, junctions, conf.junction_zone_px)
         for v in res.promoted:
             self.add_terminal(c, v)
         self.stats["promoted_terminals"] += len(res.promoted)
@@ -149,6 +152,19 @@ class _Extractor:
         term = np.array(sorted(self.terminals[c]), np.int64) - v0
         return steiner_tree(csr, term, self.conf.steiner_method) + v0
 
+    def _walk(self, c: int, uncovered, sources, need: int):
+        """Constrained walk, first with the search's turn test, then (if none) without any.
+
+        Coverage comes first: a region reachable only through a forbidden turn is still added to the
+        subgraph; the allowed-path enumeration then ends paths at that junction instead.
+        """
+        for table in (self.search_turn_ok, self.no_turn_test):
+            walk = constrained_walk(self.g, self.arc_len, self.turn_ptr, table, c, uncovered, sources,
+                                    self.is_term, need)
+            if walk is not None:
+                return walk
+        return None
+
     def _accept(self, walk, uncovered: np.ndarray, need: int) -> tuple[bool, np.ndarray, np.ndarray]:
         verts, arcs = walk
         distinct = np.unique(verts[uncovered[verts]])
@@ -166,8 +182,7 @@ class _Extractor:
             unc = ~cov.vertex & ~ignored
             if unc[v0:v1].sum() < need or len(self.terminals[c]) == 0:
                 return
-            walk = constrained_walk(g, self.arc_len, self.turn_ptr, self.turn_ok, c, unc, self.is_term,
-                                    self.is_term, need)
+            walk = self._walk(c, unc, self.is_term, need)
             if walk is None:
                 return
             ok, distinct, eids = self._accept(walk, unc, need)
@@ -202,8 +217,7 @@ class _Extractor:
             source[:] = False
             source[f + v0] = True
             unc = ~cov.vertex
-            walk = constrained_walk(g, self.arc_len, self.turn_ptr, self.turn_ok, c, unc, source,
-                                    self.is_term, conf.robust_min_new_vertices)
+            walk = self._walk(c, unc, source, conf.robust_min_new_vertices)
             ok = False
             if walk is not None:
                 ok, _, eids = self._accept(walk, unc, conf.robust_min_new_vertices)
@@ -231,7 +245,7 @@ class _Extractor:
 
 
 def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
-                     vertex_root, edges, points: np.ndarray, types: np.ndarray) -> dict:
+                     vertex_root, edges, points: np.ndarray, types: np.ndarray, vertex_flags=None) -> dict:
     """Candidate paths of one drawing.
 
     Parameters
@@ -242,7 +256,7 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
     roots : numpy.ndarray
         complex (H, W, 2) frame-field roots.
     vertex_xy, vertex_width, vertex_root, edges
-        The graph artifact's arrays.
+        The graph artifact's arrays; ``vertex_flags`` too (optional, bit 0 = next to a singularity).
     points, types : numpy.ndarray
         Keypoints (x, y) and their codes.
 
@@ -255,7 +269,7 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
     """
     t0 = time.perf_counter()
     timings = {}
-    g = build_work_graph(vertex_xy, vertex_width, vertex_root, edges)
+    g = build_work_graph(vertex_xy, vertex_width, vertex_root, edges, vertex_flags)
     ex = _Extractor(conf, g, mask)
     ex.prepare(np.asarray(points, np.float64).reshape(-1, 2), np.asarray(types).reshape(-1), roots)
     timings["prepare_s"] = time.perf_counter() - t0

@@ -29,6 +29,8 @@ class WorkGraph:
         float64 (V,) stroke width at each vertex (px).
     root : numpy.ndarray
         complex128 (V,) unit frame-field root the vertex's cross-section followed (0 if unknown).
+    near_singularity : numpy.ndarray
+        bool (V,) the graph's ``vertex_flags`` bit 0 (cross-section next to a singularity).
     orig : numpy.ndarray
         int64 (V,) vertex id in the graph artifact.
     comp_ptr : numpy.ndarray
@@ -43,6 +45,7 @@ class WorkGraph:
     xy: np.ndarray
     width: np.ndarray
     root: np.ndarray
+    near_singularity: np.ndarray
     orig: np.ndarray
     comp_ptr: np.ndarray
     edges: np.ndarray
@@ -75,7 +78,7 @@ class WorkGraph:
         return sp.csr_matrix((w, self.indices, self.indptr), shape=(n, n))
 
 
-def build_work_graph(vertex_xy, vertex_width, vertex_root, edges) -> WorkGraph:
+def build_work_graph(vertex_xy, vertex_width, vertex_root, edges, vertex_flags=None) -> WorkGraph:
     """Validate the graph artifact's arrays and build the component-contiguous :class:`WorkGraph`.
 
     Raises
@@ -88,8 +91,10 @@ def build_work_graph(vertex_xy, vertex_width, vertex_root, edges) -> WorkGraph:
     width = np.asarray(vertex_width, np.float64).reshape(-1)
     root = np.asarray(vertex_root).astype(np.complex128).reshape(-1)
     e = np.asarray(edges, np.int64).reshape(-1, 2)
-    if len(width) != n or len(root) != n:
-        raise InputError(f"topology: graph has {n} vertices but {len(width)} widths and {len(root)} roots")
+    flags = np.zeros(n, np.uint8) if vertex_flags is None else np.asarray(vertex_flags).reshape(-1)
+    if len(width) != n or len(root) != n or len(flags) != n:
+        raise InputError(f"topology: graph has {n} vertices but {len(width)} widths, {len(root)} roots "
+                         f"and {len(flags)} flags")
     if e.size and (e.min() < 0 or e.max() >= n):
         raise InputError("topology: graph edges reference vertices that do not exist")
     if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(width))):
@@ -123,7 +128,8 @@ def build_work_graph(vertex_xy, vertex_width, vertex_root, edges) -> WorkGraph:
     # Arcs are sorted by (tail, head), so the opposite of (t, h) is found by binary search.
     key = tails * n + heads
     arc_rev = np.searchsorted(key, heads * n + tails)
-    return WorkGraph(xy=xy[perm].copy(), width=width[perm], root=root[perm], orig=perm.astype(np.int64),
+    return WorkGraph(xy=xy[perm].copy(), width=width[perm], root=root[perm],
+                     near_singularity=(flags[perm].astype(np.int64) & 1).astype(bool), orig=perm.astype(np.int64),
                      comp_ptr=comp_ptr, edges=e, indptr=indptr, indices=heads.astype(np.int64),
                      arc_edge=eids.astype(np.int64), arc_rev=arc_rev.astype(np.int64))
 
@@ -210,3 +216,14 @@ def turn_table(g: WorkGraph, motions: np.ndarray, min_cos: float) -> tuple[np.nd
             ok = dot >= min_cos * np.abs(m_in) * np.abs(m_out)
             turn_ok[turn_ptr[a]:turn_ptr[a] + len(outs)] = ok
     return turn_ptr[:-1], turn_ok
+
+
+def near_singularity_only(g: WorkGraph, turn_ptr: np.ndarray, turn_ok: np.ndarray) -> np.ndarray:
+    """The turn table restricted to vertices flagged next to a singularity (others: every turn allowed).
+
+    This is the authors' constrained search: it applies the Y-junction test only where the graph
+    marks a singularity, i.e. at the valence-3 vertices that stand for real Y junctions.
+    """
+    sizes = g.degree[g.indices]
+    owner = np.repeat(np.arange(len(g.indices)), sizes)
+    return turn_ok | ~g.near_singularity[g.indices[owner]]

@@ -7,6 +7,11 @@ into two classes by which of the keypoint pixel's two frame-field roots their ow
 vertex — so a keypoint on an X or T gets one key vertex on each stroke's branch.  When one keypoint
 gets two key vertices in the *same* component that are closer than ``merge_graph_dist_px`` along the
 graph, only the one nearer the keypoint is kept (they are near duplicates on one stroke).
+
+A junction keypoint (type 3) prefers, within each class, a vertex where the graph itself branches
+(valence ≥ 3) over a nearer valence-2 one: at a Y the graph's junction vertex is where the three
+strokes meet, and a key vertex one pixel down a branch would let paths between the other branches
+bypass it.
 """
 
 from __future__ import annotations
@@ -73,8 +78,10 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
         else:
             cls = np.zeros(len(cand), np.int64)
         d = np.hypot(*(g.xy[cand] - p).T)
+        # A junction keypoint prefers a graph junction (valence ≥ 3) of the branch when there is one.
+        rank = (g.degree[cand] < 3) if t == 3 else np.zeros(len(cand), bool)
         chosen: dict[tuple[int, int], int] = {}
-        for idx in np.argsort(d, kind="stable"):
+        for idx in np.lexsort((d, rank)):
             v = int(cand[idx])
             key = (int(comp_of[v]), int(cls[idx]))
             if key in chosen:
@@ -91,7 +98,7 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
                 sub = csr[v0:v1, v0:v1]
                 dd = dijkstra(sub, directed=True, indices=vs[0] - v0, limit=merge_dist)[vs[1] - v0]
                 if dd < merge_dist:
-                    vs = [min(vs, key=lambda v: np.hypot(*(g.xy[v] - p)))]
+                    vs = [min(vs, key=lambda v: (t == 3 and g.degree[v] < 3, np.hypot(*(g.xy[v] - p))))]
             for v in vs:
                 dist = float(np.hypot(*(g.xy[v] - p)))
                 if v not in claims or dist < claims[v][0]:

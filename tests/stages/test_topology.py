@@ -233,7 +233,7 @@ def test_empty_graph_gives_no_paths():
     d = synthetic.line()
     inputs = synthetic_inputs(d)
     g = inputs["graph"]
-    for name in ("vertex_xy", "vertex_width", "vertex_root", "edges"):
+    for name in ("vertex_xy", "vertex_width", "vertex_root", "vertex_flags", "edges"):
         g.arrays[name] = g.arrays[name][:0]
     art = run(CFG, **inputs)
     assert art.data["paths"] == [] and len(art["coverage_offsets"]) == 1
@@ -290,3 +290,56 @@ def test_many_cycles_and_terminals_do_not_give_up():
     assert len(art.data["key_vertices"]) == n
     assert len(art.data["paths"]) == n - 1
     assert _uncovered(art, inputs) == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Integration: through the real prep → field → graph stages
+# ---------------------------------------------------------------------------------------------
+
+def _real_inputs(drawing, keypoints=None):
+    from stages import field as field_stage, graph as graph_stage, prep as prep_stage
+
+    conf = {n: yaml.safe_load((ROOT / "conf" / n / "default.yaml").read_text()) for n in ("prep", "field", "graph")}
+    prep = prep_stage.run(conf["prep"], image_bytes=drawing.png_bytes(), image_name="synthetic.png")
+    field = field_stage.run(conf["field"], prep=prep)
+    graph = graph_stage.run(conf["graph"], prep=prep, field=field)
+    kps = synthetic_inputs(drawing, keypoints=keypoints)["keypoints"]
+    return {"prep": prep, "field": field, "graph": graph, "keypoints": kps}
+
+
+def _run_real(drawing, keypoints=None):
+    inputs = _real_inputs(drawing, keypoints)
+    return run(CFG, **inputs), inputs
+
+
+def test_real_graph_x_t_y():
+    art, inputs = _run_real(synthetic.cross())
+    through = {tuple(sorted(p["end_keypoints"])) for p in art.data["paths"] if p["through_keypoints"] == [4]}
+    assert through == {(0, 1), (2, 3)}
+    assert _uncovered(art, inputs) == 0
+
+    art, inputs = _run_real(synthetic.tee())
+    pairs = _pairs(art)
+    assert {(2, 3), (0, 3), (1, 3)} <= set(pairs) and not {(0, 2), (1, 2)} & set(pairs)
+    assert _uncovered(art, inputs) == 0
+
+    art, inputs = _run_real(synthetic.wye())
+    assert sorted(_pairs(art)) == [(0, 3), (1, 3), (2, 3)]
+    assert _uncovered(art, inputs) == 0
+
+
+def test_real_graph_turn_test_and_corners():
+    art, inputs = _run_real(_fork(centre_keypoint=False))
+    assert sorted(_pairs(art)) == [(0, 1), (0, 2)]
+    assert _uncovered(art, inputs) == 0
+
+    art, inputs = _run_real(synthetic.zigzag())
+    order = [0, 2, 3, 4, 5, 6, 1]
+    assert sorted(_pairs(art)) == sorted(tuple(sorted(p)) for p in zip(order[:-1], order[1:]))
+    assert _uncovered(art, inputs) == 0
+
+
+def test_real_graph_example_without_keypoints_is_covered():
+    art, inputs = _run_real(synthetic.example_drawing())
+    assert _uncovered(art, inputs) == 0
+    assert all(p["end_types"] == [0, 0] for p in art.data["paths"])
