@@ -340,6 +340,18 @@ def _leaf_chain(adj, v):
     return chain, cur
 
 
+def _covered_count(tree, xy, radius, rmax, chain) -> int:
+    """How many chain vertices lie inside the disc of some vertex not on the chain."""
+    near = tree.query_ball_point(xy[chain], rmax)
+    lens = np.array([len(q) for q in near])
+    if lens.sum() == 0:
+        return 0
+    q = np.concatenate([np.asarray(a, dtype=np.int64) for a in near])
+    owner = np.repeat(np.arange(len(chain)), lens)
+    hit = ~np.isin(q, chain) & (np.linalg.norm(xy[q] - xy[chain[owner]], axis=1) <= radius[q])
+    return int(np.count_nonzero(np.bincount(owner[hit], minlength=len(chain))))
+
+
 def prune_covered_spurs(xy, width, strength, edges, max_length, min_covered):
     """Delete short dangling branches lying inside the stroke discs of the rest of the graph.
 
@@ -392,12 +404,7 @@ def prune_covered_spurs(xy, width, strength, edges, max_length, min_covered):
             length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
             if length > max_length:
                 continue
-            on = set(chain)
-            covered = 0
-            for p in chain:
-                near = tree.query_ball_point(xy[p], rmax)
-                if any(q not in on and np.hypot(*(xy[q] - xy[p])) <= radius[q] for q in near):
-                    covered += 1
+            covered = _covered_count(tree, xy, radius, rmax, np.asarray(chain))
             frac = covered / len(chain)
             if frac < min_covered and len(chain) - covered > 1:
                 continue

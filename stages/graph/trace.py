@@ -175,14 +175,14 @@ def _is_duplicate(head, nxt, sx, sy, sc, w, base, n, cid, d2):
 @njit(cache=True)
 def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_cos, lag, tie, cap):
     H, W = band.shape
-    head = np.full(H * W, -1, np.int64)
+    head = np.full(H * W, -1, np.int32)
     sx = np.empty(cap, np.float32)
     sy = np.empty(cap, np.float32)
     tx = np.empty(cap, np.float32)
     ty = np.empty(cap, np.float32)
     sc = np.empty(cap, np.int32)
     si = np.empty(cap, np.int32)
-    nxt = np.empty(cap, np.int64)
+    nxt = np.empty(cap, np.int32)
     n = 0
     ccap = 1024
     c_start = np.empty(ccap, np.int64)
@@ -330,7 +330,7 @@ class Streamlines:
         int8 (C, 2) why the curve stopped at its first / last sample (``LEFT``, ``SINGULAR``,
         ``MERGED``, ``CAP``, ``DEGENERATE``).
     head, next : numpy.ndarray
-        int64 per-pixel linked lists of sample ids (``head[row * W + col]``, ``-1`` terminated).
+        int32 per-pixel linked lists of sample ids (``head[row * W + col]``, ``-1`` terminated).
     """
 
     xy: np.ndarray
