@@ -1,0 +1,277 @@
+"""SVG (and curves JSON) of the selected flowed curves.
+
+Coordinates are pixel units with x right, y down and the origin at the top-left *corner* of the image
+(stages/INTERFACES.md), which is exactly SVG user space with ``viewBox="0 0 W H"``: the curves are
+written as they are, with no half-pixel shift (the authors add +0.5 because their points are pixel
+indices; ours are already corner-origin).
+
+Output (data of the artifact; the engine writes the files):
+
+* ``svg`` — one ``<path>`` per selected curve (polyline ``M … L …``), black stroke, no fill; stroke
+  width ``stroke_width`` px, or each curve's mean stroke width from the graph (topology path
+  ``widths``) when ``widths_from_graph`` is set;
+* ``curves`` — ``{"id", "points", "end_types", "width"}`` per curve, in selection order;
+* ``bezier_svg`` (when ``bezier.enabled``) — the same curves as piecewise cubic Béziers fitted within
+  ``bezier.tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
+  least-squares control points for fixed end tangents, Newton re-parametrisation, split at the point
+  of largest error).  The fit keeps the curve's ends exactly, and its pieces join with a common
+  tangent (only keypoints are corners, and they are the curves' ends).
+
+The authors export raw polylines only (no Bézier fitting); this is an addition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from stages.artifact import Artifact, unpack_ragged
+from stages.errors import InputError
+
+STAGE_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class ExportParams:
+    """The ``export`` config section (``conf/export/default.yaml``)."""
+
+    stroke_width: float
+    widths_from_graph: bool
+    precision: int
+    bezier: bool
+    bezier_tolerance: float
+
+    @classmethod
+    def from_cfg(cls, cfg: dict) -> "ExportParams":
+        """Build from the config dict; every key must be present."""
+        try:
+            p = cls(stroke_width=float(cfg["stroke_width"]), widths_from_graph=bool(cfg["widths_from_graph"]),
+                    precision=int(cfg["precision"]), bezier=bool(cfg["bezier"]["enabled"]),
+                    bezier_tolerance=float(cfg["bezier"]["tolerance"]))
+        except KeyError as e:
+            raise InputError(f"export config is missing key {e}") from None
+        if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
+            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier.tolerance > 0")
+        return p
+
+
+# ---------------------------------------------------------------------------------------------
+# Cubic Bézier fitting (Schneider 1990)
+# ---------------------------------------------------------------------------------------------
+
+def _bezier(ctrl: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Points of one cubic Bézier (4, 2) at parameters u."""
+    u = u[:, None]
+    v = 1 - u
+    return v ** 3 * ctrl[0] + 3 * v * v * u * ctrl[1] + 3 * v * u * u * ctrl[2] + u ** 3 * ctrl[3]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.hypot(*v)
+    return v / n if n > 1e-12 else np.zeros(2)
+
+
+def _fit_segment(pts: np.ndarray, u: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+    """Least-squares control points for fixed end points and end tangent directions."""
+    p0, p3 = pts[0], pts[-1]
+    v = 1 - u
+    a0 = (3 * v * v * u)[:, None] * t0
+    a1 = (3 * v * u * u)[:, None] * t1
+    c00, c01, c11 = (a0 * a0).sum(), (a0 * a1).sum(), (a1 * a1).sum()
+    rest = pts - _bezier(np.array([p0, p0, p3, p3]), u)
+    x0, x1 = (a0 * rest).sum(), (a1 * rest).sum()
+    det = c00 * c11 - c01 * c01
+    seg = np.hypot(*(p3 - p0))
+    if abs(det) > 1e-12:
+        al0 = (x0 * c11 - x1 * c01) / det
+        al1 = (c00 * x1 - c01 * x0) / det
+    else:
+        al0 = al1 = seg / 3
+    if al0 < 1e-6 * seg or al1 < 1e-6 * seg:  # degenerate: Wu–Barsky heuristic
+        al0 = al1 = seg / 3
+    return np.array([p0, p0 + al0 * t0, p3 + al1 * t1, p3])
+
+
+def _reparameterise(ctrl: np.ndarray, pts: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """One Newton step on |B(u) − p|² per point."""
+    d1 = 3 * np.diff(ctrl, axis=0)
+    d2 = 2 * np.diff(d1, axis=0)
+    diff = _bezier(ctrl, u) - pts
+    uu = u[:, None]
+    b1 = (1 - uu) ** 2 * d1[0] + 2 * (1 - uu) * uu * d1[1] + uu ** 2 * d1[2]
+    b2 = (1 - uu) * d2[0] + uu * d2[1]
+    num = (diff * b1).sum(1)
+    den = (b1 * b1).sum(1) + (diff * b2).sum(1)
+    step = np.where(np.abs(den) > 1e-12, num / np.where(np.abs(den) > 1e-12, den, 1), 0)
+    return np.clip(u - step, 0, 1)
+
+
+def fit_cubic_beziers(points: np.ndarray, tolerance: float, max_depth: int = 32) -> list[np.ndarray]:
+    """Fit a polyline with a chain of cubic Béziers within ``tolerance`` (max point distance).
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        (n, 2) polyline in (x, y).
+    tolerance : float
+        Largest allowed distance (px) between a polyline vertex and its fitted point.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        (4, 2) control points per piece; consecutive pieces share end points.
+    """
+    pts = np.asarray(points, np.float64)
+    keep = np.r_[True, np.hypot(*np.diff(pts, axis=0).T) > 1e-9]
+    pts = pts[keep]
+    if len(pts) < 2:
+        return []
+    if len(pts) == 2:
+        a, b = pts
+        return [np.array([a, a + (b - a) / 3, a + 2 * (b - a) / 3, b])]
+
+    def tangent_at(i: int, direction: int) -> np.ndarray:
+        # Direction from vertex i towards its neighbours (≥ 2 px of arc, to average out jitter).
+        j, acc = i, 0.0
+        while 0 <= j + direction < len(pts) and acc < 2.0:
+            acc += np.hypot(*(pts[j + direction] - pts[j]))
+            j += direction
+        return _unit(pts[j] - pts[i])
+
+    out: list[np.ndarray] = []
+
+    def fit(lo: int, hi: int, t0: np.ndarray, t1: np.ndarray, depth: int) -> None:
+        seg = pts[lo:hi + 1]
+        if len(seg) == 2:
+            a, b = seg
+            d = np.hypot(*(b - a)) / 3
+            out.append(np.array([a, a + d * t0, b + d * t1, b]))
+            return
+        s = np.r_[0, np.cumsum(np.hypot(*np.diff(seg, axis=0).T))]
+        u = s / s[-1]
+        ctrl = _fit_segment(seg, u, t0, t1)
+        for _ in range(20):
+            err = np.hypot(*(_bezier(ctrl, u) - seg).T)
+            if err.max() <= tolerance:
+                out.append(ctrl)
+                return
+            if err.max() > 4 * tolerance:
+                break
+            u = _reparameterise(ctrl, seg, u)
+            ctrl = _fit_segment(seg, u, t0, t1)
+        err = np.hypot(*(_bezier(ctrl, u) - seg).T)
+        if err.max() <= tolerance or depth >= max_depth:
+            out.append(ctrl)
+            return
+        k = int(np.argmax(err[1:-1])) + 1
+        tc = _unit(seg[k - 1] - seg[k + 1])
+        if not tc.any():
+            tc = _unit(np.array([-(seg[k + 1] - seg[k])[1], (seg[k + 1] - seg[k])[0]]))
+        fit(lo, lo + k, t0, tc, depth + 1)
+        fit(lo + k, hi, -tc, t1, depth + 1)
+
+    fit(0, len(pts) - 1, tangent_at(0, 1), tangent_at(len(pts) - 1, -1), 0)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# SVG
+# ---------------------------------------------------------------------------------------------
+
+def _fmt(v: float, precision: int) -> str:
+    s = f"{v:.{precision}f}"
+    if "." in s:
+        s = s.rstrip("0").rstrip(".")
+    return "0" if s in ("-0", "") else s
+
+
+def _polyline_d(points: np.ndarray, precision: int) -> str:
+    coords = [f"{_fmt(x, precision)} {_fmt(y, precision)}" for x, y in points]
+    return "M " + coords[0] + "".join(" L " + c for c in coords[1:])
+
+
+def _bezier_d(pieces: list[np.ndarray], precision: int) -> str:
+    f = lambda p: f"{_fmt(p[0], precision)} {_fmt(p[1], precision)}"  # noqa: E731
+    return "M " + f(pieces[0][0]) + "".join(" C " + " ".join(f(q) for q in c[1:]) for c in pieces)
+
+
+def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportParams) -> str:
+    """An SVG document with one black, unfilled ``<path>`` per curve.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size in pixels (also the viewBox).
+    curves : list of dict
+        With ``id`` and ``width`` (used when ``widths_from_graph``).
+    ds : list of str
+        Path data per curve.
+    params : ExportParams
+    """
+    lines = ['<?xml version="1.0" encoding="UTF-8" standalone="no"?>',
+             f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width}" height="{height}" '
+             f'viewBox="0 0 {width} {height}">',
+             f'  <g fill="none" stroke="#000000" stroke-width="{_fmt(params.stroke_width, 3)}" '
+             'stroke-linecap="round" stroke-linejoin="round">']
+    for c, d in zip(curves, ds):
+        extra = ""
+        if params.widths_from_graph and c.get("width"):
+            extra = f' stroke-width="{_fmt(c["width"], 3)}"'
+        lines.append(f'    <path id={quoteattr("curve-" + str(c["id"]))}{extra} d="{d}"/>')
+    lines += ["  </g>", "</svg>", ""]
+    return "\n".join(lines)
+
+
+def run(cfg: dict, **inputs: Artifact) -> Artifact:
+    """Stage entry: SVG and curves of the selected flowed paths.
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``export`` config section.
+    prep, topology, flow, select : Artifact
+        Image size (``prep`` data ``height``/``width`` or its ``grey``), candidate paths (end types,
+        widths), flowed curves (topology order) and the chosen path ids.
+
+    Returns
+    -------
+    Artifact
+        data ``svg``, ``curves`` and (optional) ``bezier_svg``.
+    """
+    params = ExportParams.from_cfg(cfg)
+    for name in ("prep", "topology", "flow", "select"):
+        if name not in inputs:
+            raise InputError(f"export stage needs the '{name}' artifact")
+    prep, topo, fl, sel = (inputs[k] for k in ("prep", "topology", "flow", "select"))
+    if "height" in prep.data and "width" in prep.data:
+        height, width = int(prep.data["height"]), int(prep.data["width"])
+    elif "grey" in prep.arrays:
+        height, width = prep.arrays["grey"].shape
+    else:
+        raise InputError("export: the prep artifact gives no image size")
+    paths = topo.data.get("paths", [])
+    curves_xy = unpack_ragged(np.asarray(fl["curve_xy"]).reshape(-1, 2), np.asarray(fl["curve_xy_offsets"]))
+    if len(curves_xy) != len(paths):
+        raise InputError(f"export: {len(paths)} topology paths but {len(curves_xy)} flowed curves")
+    index = {int(p["id"]): k for k, p in enumerate(paths)}
+    curves, ds, bds = [], [], []
+    for cid in sel.data.get("chosen", []):
+        if int(cid) not in index:
+            raise InputError(f"export: chosen path {cid} is not a topology path")
+        k = index[int(cid)]
+        pts = np.asarray(curves_xy[k], np.float64)
+        if len(pts) < 2 or not np.all(np.isfinite(pts)):
+            continue
+        w = paths[k].get("widths") or []
+        curves.append({"id": int(cid), "points": pts.tolist(),
+                       "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
+                       "width": float(np.mean(w)) if len(w) else None})
+        ds.append(_polyline_d(pts, params.precision))
+        if params.bezier:
+            bds.append(_bezier_d(fit_cubic_beziers(pts, params.bezier_tolerance), params.precision))
+    data = {"svg": svg_document(width, height, curves, ds, params), "curves": curves}
+    if params.bezier:
+        data["bezier_svg"] = svg_document(width, height, curves, bds, params)
+    return Artifact(data=data)

@@ -1,0 +1,140 @@
+"""Tests of the SVG export: valid XML, viewBox, coordinates aligned with the drawing, Bézier fit."""
+
+from __future__ import annotations
+
+import json
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from stages import export, synthetic
+from stages.artifact import Artifact, pack_ragged
+from stages.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+CFG = yaml.safe_load((ROOT / "conf" / "export" / "default.yaml").read_text())
+NS = {"svg": "http://www.w3.org/2000/svg"}
+
+
+def _cfg(**over):
+    cfg = json.loads(json.dumps(CFG))
+    for k, v in over.items():
+        if k.startswith("bezier_"):
+            cfg["bezier"][k[7:]] = v
+        else:
+            cfg[k] = v
+    return cfg
+
+
+def _inputs(curves, chosen, shape=(64, 80), widths=None):
+    paths = [{"id": 100 + k, "component": 0, "vertices": [], "xy": np.asarray(c).tolist(),
+              "widths": list(widths[k]) if widths else [3.0] * len(c), "interest_dist": [0.0] * len(c),
+              "end_types": [1, 3], "end_keypoints": [0, 1]} for k, c in enumerate(curves)]
+    flat, off = pack_ragged([np.asarray(c, float) for c in curves], np.float64)
+    return {"prep": Artifact(data={"height": shape[0], "width": shape[1]}),
+            "topology": Artifact(data={"paths": paths}),
+            "flow": Artifact(arrays={"curve_xy": flat.reshape(-1, 2), "curve_xy_offsets": off}),
+            "select": Artifact(data={"chosen": [100 + k for k in chosen], "status": "optimal"})}
+
+
+def _path_points(d: str) -> np.ndarray:
+    nums = [float(v) for v in re.findall(r"-?\d+(?:\.\d+)?", d)]
+    return np.array(nums).reshape(-1, 2)
+
+
+def test_svg_parses_with_the_image_viewbox_and_one_path_per_chosen_curve():
+    curves = [np.array([[1.0, 2.0], [10.5, 20.25], [30.125, 40.0]]), np.array([[5.0, 5.0], [6.0, 9.0]]),
+              np.array([[50.0, 1.0], [70.0, 60.0]])]
+    art = export.run(CFG, **_inputs(curves, [2, 0]))
+    root = ET.fromstring(art.data["svg"].encode())
+    assert root.tag == "{http://www.w3.org/2000/svg}svg"
+    assert root.get("viewBox") == "0 0 80 64"
+    assert root.get("width") == "80" and root.get("height") == "64"
+    paths = root.findall(".//svg:path", NS)
+    assert [p.get("id") for p in paths] == ["curve-102", "curve-100"]
+    group = root.find("svg:g", NS)
+    assert group.get("fill") == "none" and group.get("stroke") == "#000000"
+    np.testing.assert_allclose(_path_points(paths[1].get("d")), curves[0], atol=0.005 + 1e-9)
+    np.testing.assert_allclose(_path_points(paths[0].get("d")), curves[2], atol=0.005 + 1e-9)
+    assert [c["id"] for c in art.data["curves"]] == [102, 100]
+    assert art.data["curves"][1]["end_types"] == [1, 3]
+    assert art.data["curves"][1]["width"] == pytest.approx(3.0)
+    json.dumps(art.data)
+    assert "bezier_svg" not in art.data
+
+
+def test_svg_coordinates_lie_on_the_drawn_strokes():
+    """Pixel coordinates without a half-pixel shift: each path point sits at the ink centroid across it."""
+    d = synthetic.line(angle=17, width=3.0)
+    a, b = d.strokes[0]
+    dense = a + np.linspace(0.1, 0.9, 40)[:, None] * (b - a)
+    art = export.run(CFG, **_inputs([dense], [0], shape=d.grey.shape))
+    pts = _path_points(ET.fromstring(art.data["svg"]).find(".//svg:path", NS).get("d"))
+    nrm = np.array([-(b - a)[1], (b - a)[0]]) / np.hypot(*(b - a))
+    ink = 1.0 - d.grey
+    offsets = []
+    for p in pts:
+        i0, j0 = int(p[1]), int(p[0])
+        ii, jj = np.mgrid[i0 - 4:i0 + 5, j0 - 4:j0 + 5]
+        centres = np.stack([jj + 0.5, ii + 0.5], -1).reshape(-1, 2)   # pixel [i, j] centre = (j + .5, i + .5)
+        w = ink[ii, jj].ravel()
+        offsets.append(((centres - p) @ nrm * w).sum() / w.sum())
+    assert np.abs(offsets).max() < 0.1
+
+
+def test_stroke_widths_from_the_graph():
+    curves = [np.array([[1.0, 2.0], [10.0, 20.0]]), np.array([[5.0, 5.0], [6.0, 9.0]])]
+    art = export.run(_cfg(widths_from_graph=True), **_inputs(curves, [0, 1], widths=[[2.0, 4.0], [5.0, 5.0]]))
+    paths = ET.fromstring(art.data["svg"]).findall(".//svg:path", NS)
+    assert [p.get("stroke-width") for p in paths] == ["3", "5"]
+
+
+def test_bezier_fit_stays_within_tolerance_and_keeps_the_ends():
+    t = np.linspace(0, 1.5 * np.pi, 300)
+    pts = np.stack([40 + 25 * np.cos(t), 40 + 25 * np.sin(t)], 1)
+    pts += np.random.default_rng(0).normal(0, 0.05, pts.shape)
+    for tol in (0.2, 0.5, 1.0):
+        pieces = export.fit_cubic_beziers(pts, tol)
+        np.testing.assert_allclose(pieces[0][0], pts[0])
+        np.testing.assert_allclose(pieces[-1][-1], pts[-1])
+        for a, b in zip(pieces[:-1], pieces[1:]):
+            np.testing.assert_allclose(a[-1], b[0])
+            # Consecutive pieces share the tangent at their joint.
+            ta, tb = a[3] - a[2], b[1] - b[0]
+            assert abs(ta[0] * tb[1] - ta[1] * tb[0]) < 1e-9 * np.hypot(*ta) * np.hypot(*tb) + 1e-12
+        u = np.linspace(0, 1, 400)
+        dense = np.concatenate([export._bezier(c, u) for c in pieces])
+        dist = np.sqrt(((pts[:, None] - dense[None]) ** 2).sum(-1)).min(1)
+        assert dist.max() <= tol + 0.02
+        assert len(pieces) <= 8
+    assert len(export.fit_cubic_beziers(pts[:2], 0.5)) == 1
+    assert export.fit_cubic_beziers(pts[:1], 0.5) == []
+
+
+def test_bezier_svg_is_written_when_enabled():
+    t = np.linspace(0, np.pi, 100)
+    curve = np.stack([40 + 20 * np.cos(t), 30 + 20 * np.sin(t)], 1)
+    art = export.run(_cfg(bezier_enabled=True), **_inputs([curve], [0]))
+    root = ET.fromstring(art.data["bezier_svg"])
+    d = root.find(".//svg:path", NS).get("d")
+    assert " C " in d and root.get("viewBox") == "0 0 80 64"
+
+
+def test_empty_selection_and_bad_input():
+    art = export.run(CFG, **_inputs([np.array([[1.0, 2.0], [3.0, 4.0]])], []))
+    root = ET.fromstring(art.data["svg"])
+    assert root.findall(".//svg:path", NS) == [] and art.data["curves"] == []
+    bad = _inputs([np.array([[1.0, 2.0], [3.0, 4.0]])], [])
+    bad["select"].data["chosen"] = [7]
+    with pytest.raises(InputError):
+        export.run(CFG, **bad)
+    bad = _inputs([np.array([[1.0, 2.0], [3.0, 4.0]])], [0])
+    bad["topology"].data["paths"].append(dict(bad["topology"].data["paths"][0], id=5))
+    with pytest.raises(InputError):
+        export.run(CFG, **bad)
+    with pytest.raises(InputError):
+        export.run({k: v for k, v in CFG.items() if k != "precision"}, **_inputs([], []))
