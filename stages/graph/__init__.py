@@ -3,15 +3,42 @@
 Following Bessmeltsev & Solomon 2019 as the authors' code uses it (shared/reference/
 b19-frame-field-and-graph.md §A.2–A.3, authors-implementation.md §4):
 
-1. :mod:`~stages.graph.trace` — streamlines of the PolyVector field from every band pixel, both ways.
+1. :mod:`~stages.graph.trace` — streamlines of the PolyVector field from every band pixel, both ways
+   (step 0.1 px, best-aligned root continuation, stop on leaving the band, singular pixels, merging,
+   length cap).
 2. :mod:`~stages.graph.cross_section` — vertices = cross-sections of the streamlines of one root
-   family (centre, width, root, member streamlines); edges join vertices consecutive along a
-   streamline.
+   family (gaps ≤ ``max_gap``): centre, width, root, member streamlines; edges join vertices
+   consecutive along a streamline.
 3. :mod:`~stages.graph.cleanup` — merge near-duplicate vertices, trim dangling branches into
-   singularities, drop insignificant components, contract thickness loops, smooth the widths.
+   singularities, drop insignificant components, contract thickness loops (≤ 4 enclosed background
+   pixels; real holes stay), prune spurs inside the stroke and hooked tips, join dangling ends across
+   singularities (Y junctions), smooth the widths by one sparse least-squares solve.
 
-Each module's docstring lists where and why it departs from the reference.  The artifact follows
-stages/INTERFACES.md "graph"; :func:`render_graph` draws it over the drawing.
+Choices, in short (each module's docstring has the reasons and measurements):
+
+* **Where cross-sections are taken.**  The reference takes them only at streamline ends; we place
+  them along the streamlines about ``station_spacing`` (1 px) apart, each one serving the whole bundle
+  it crosses, so every stroke is a chain of vertices ~1 px apart (what the topology's coverage and the
+  flow's resampling need).  The raw graph is then *not* a dense ladder: one cross-section covers all
+  the ~30 lanes of a bundle.  What duplicates remain (lanes starting mid-stroke) are merged when
+  adjacent, closer than 0.5 px and of the same root family; the few small cycles left are thickness
+  loops, contracted like the reference's.
+* **Vertex position** = midpoint of the cross-section (not the mean of the crossings, which lane density
+  biases); **width** = diameter + half a lane spacing (never 0, within 0.75 px of the drawn width on
+  synthetic strokes at all angles); ``max_gap`` = 1.5 px (1 px cuts axis-aligned strokes, whose lanes are
+  exactly 1 px apart).
+* **Extra clean-up** not in the authors' code, taken from B19: spur pruning
+  (``removeBranchesFilter1``) and joins across singularities (``connectStuffAroundSingularities``);
+  plus trimming of sideways-hooked tips at rounded stroke ends.  Without them a straight stroke's tip
+  and a Y junction do not come out as a path and a valence-3 vertex.
+* Components are dropped by width-padded bounding-box area only (the reference's "no vertex crosses
+  two streamlines" rule deletes one-pixel-wide axis-aligned strokes).
+
+Measured (tests/benchmarks/bench_graph.py, the four scanned drawings, 2 shared cores): 1.1–2.2 s CPU,
+peak RSS ≤ 370 MB; vertices are centred on the band to 0.10 px (median) / 0.3 px (90th percentile)
+along their normals.
+
+The artifact follows stages/INTERFACES.md "graph"; :func:`render_graph` draws it over the drawing.
 """
 
 from __future__ import annotations

@@ -11,6 +11,11 @@ is the vertex.  A cross-section stops on leaving the band, on a singular pixel (
 flagged *next to singularity* if that happened within ``max_gap`` of the run), after ``max_gap`` px
 without a crossing, or at ``max_section_length`` px.
 
+``max_gap`` is 1.5 px, not the reference's 1 px: on an axis-aligned stroke the lanes sit on pixel
+centres exactly 1 px apart, and a cross-section that is a hair off the normal (or round-off in the
+0.1 px steps) measures 1.0000x px, so a 1 px limit cuts such strokes into one-lane vertices of width
+0 — which is what happened on horizontal and vertical synthetic lines before the change.
+
 Vertex attributes:
 
 * ``xy``: the midpoint (by arc length) of the run along the cross-section.  The paper says "centroid
@@ -25,9 +30,9 @@ Vertex attributes:
   for a strip of the band one lane spacing ``g`` wide (the mean gap between consecutive crossings,
   at most 1 px; 1 px for a lone crossing); the band's edge falls on average halfway through the
   outermost strips, so ``g/4`` is added on each side.  Measured on anti-aliased synthetic strokes of
-  width 2–5 at 0–133°, the inner vertices' widths are within 0.6 px of the drawn width (the
-  diameter alone is up to 1 px short on axis-aligned strokes; diameter + ``g`` is up to 1.1 px long
-  where half-covered edge pixels pass the band threshold).
+  width 2, 3 and 5 px at 0–133°, the widths of the vertices away from the caps are within 0.75 px of
+  the drawn width (the bare diameter is up to 1.5 px short on axis-aligned strokes; diameter + ``g``
+  is up to 1.1 px long where half-covered edge pixels pass the band threshold).
 * ``root``: the followed root at ``p`` (unit, oriented along streamline ``k``).
 
 **Where cross-sections are taken.**  The reference takes one at each end of every streamline and

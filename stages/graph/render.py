@@ -6,7 +6,7 @@ import numpy as np
 
 from stages.artifact import unpack_ragged
 
-_STREAMLINE = (235, 200, 40)
+_STREAMLINE = (250, 222, 120)
 _EDGE = (30, 90, 230)
 _ADDED_EDGE = (0, 170, 0)
 _VERTEX = (220, 30, 60)

@@ -21,7 +21,9 @@ spacing).  Traces of ≤ 2 samples are dropped, and so is a trace all of whose s
 ``merge_distance`` of a single earlier curve (the reference's duplicate test).
 
 The kernel is one sequential numba loop: each trace depends on every earlier one through the merge
-test, so it cannot be vectorised over seeds without changing the result.  Samples live in a per-pixel
+test, so it cannot be vectorised over seeds without changing the result (and the merge test is what
+keeps the lanes ~``merge_distance`` apart instead of one full-length trace per band pixel).  Measured
+on the scanned drawings (20–35 k band pixels, 1–2 M samples): 0.5–1.3 s.  Samples live in a per-pixel
 linked list (``head``/``next``), which :mod:`stages.graph.cross_section` reuses to find the streamlines
 crossing a cross-section.
 """
