@@ -75,7 +75,8 @@ class _Extractor:
     def prepare(self, points, types, roots) -> None:
         conf, g = self.conf, self.g
         for v, k, t in find_key_vertices(g, self.comp_of, points, types, roots, self.mask,
-                                         conf.keypoint_radius_px, conf.merge_graph_dist_px):
+                                         conf.keypoint_radius_px, conf.merge_graph_dist_px,
+                                         conf.min_component_vertices):
             self.add_terminal(int(self.comp_of[v]), v, (k, t))
             g.xy[v] = points[k]                     # trust the keypoint's position (paper §4.2)
         self.arc_len = g.arc_length()

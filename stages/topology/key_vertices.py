@@ -35,7 +35,8 @@ def segment_in_band(mask: np.ndarray, p: np.ndarray, q: np.ndarray, step: float 
 
 
 def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndarray, roots: np.ndarray,
-                      mask: np.ndarray, radius: float, merge_dist: float) -> list[tuple[int, int, int]]:
+                      mask: np.ndarray, radius: float, merge_dist: float,
+                      min_component_vertices: int = 1) -> list[tuple[int, int, int]]:
     """Map keypoints to key vertices.
 
     Parameters
@@ -52,6 +53,8 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
         bool (H, W) narrow band.
     radius, merge_dist : float
         ``keypoint_radius_px`` and ``merge_graph_dist_px``.
+    min_component_vertices : int
+        Smaller components (skipped by the stage) get no key vertices.
 
     Returns
     -------
@@ -61,11 +64,13 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
     if g.n_vertices == 0 or len(points) == 0:
         return []
     tree = cKDTree(g.xy)
+    comp_size = np.diff(g.comp_ptr)
     h, w = mask.shape
     claims: dict[int, tuple[float, int, int]] = {}
     csr = None
     for k, (p, t) in enumerate(zip(np.asarray(points, np.float64), np.asarray(types))):
         cand = np.array(tree.query_ball_point(p, radius), np.int64)
+        cand = cand[comp_size[comp_of[cand]] >= min_component_vertices] if len(cand) else cand
         if len(cand) == 0:
             continue
         i, j = int(np.floor(p[1])), int(np.floor(p[0]))

@@ -12,7 +12,8 @@ the traced graph represents each configuration (reference b19-frame-field-and-gr
   half a stroke width (the traced curves stop at the bar's far edge) and shares no vertex with it;
 * **Y**: strokes ending at a common point share one vertex there (valence 3), flagged next to a
   singularity;
-* a closed stroke closes its chain with an edge from its last to its first vertex.
+* a closed stroke closes its chain with an edge from its last to its first vertex (its first vertex can
+  be shared with other strokes' ends, like a Y).
 
 Each chain carries three streamline ids (a bundle), so ``vertex_members`` looks like the real thing.
 """
@@ -156,7 +157,7 @@ def synthetic_inputs(drawing, spacing: float = 1.0, keypoints=None, join_tol: fl
         vids = []
         for k, p in enumerate(dense):
             r = complex(*tang[k])
-            is_end = k in (0, len(dense) - 1) and not closed
+            is_end = k == 0 or (k == len(dense) - 1 and not closed)   # a closed stroke joins at its start
             vid = vertex_at(p, r, ids) if is_end else None
             if vid is None:
                 xy.append(p)

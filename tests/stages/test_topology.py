@@ -157,6 +157,20 @@ def test_loop_with_one_corner_keypoint_is_covered():
     assert all(0 in p["end_keypoints"] for p in art.data["paths"])
 
 
+def test_loop_hanging_from_a_junction_is_a_closed_path():
+    """A lollipop: the coverage loop walks round the loop back to its junction key vertex."""
+    t = np.linspace(0, 2 * np.pi, 120)
+    loop = np.stack([32 + 14 * np.sin(t), 30 - 14 * (1 - np.cos(t))], axis=1)
+    loop[-1] = loop[0]
+    stem = np.array([[32, 30], [32, 60.0]])
+    d = Drawing(render((64, 64), [loop, stem], 3.0), [loop, stem], 3.0, [(32, 30, 3), (32, 60, 1)])
+    art, inputs = _run(d)
+    assert sorted(_pairs(art)) == [(0, 0), (0, 1)]
+    closed = next(p for p in art.data["paths"] if p["end_keypoints"] == [0, 0])
+    assert closed["vertices"][0] == closed["vertices"][-1] and closed["length"] > 80
+    assert art.data["counts"]["loop_a_paths"] == 1 and _uncovered(art, inputs) == 0
+
+
 def test_missed_endpoint_becomes_a_synthetic_key_vertex():
     d = synthetic.wye()
     kps = [k for i, k in enumerate(d.keypoints) if i != 2]     # drop one tip: a missed keypoint
