@@ -48,7 +48,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from stages.artifact import Artifact, pack_ragged
+from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.graph import cleanup
 from stages.graph.cross_section import RawGraph, build_cross_sections, streamline_edges

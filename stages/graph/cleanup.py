@@ -25,10 +25,20 @@ Steps, in the order :func:`stages.graph.run` applies them:
    *anchors* (vertices with edges off the cycle) to the cycle vertex nearest its centroid are kept.
    Repeated until no cycle is contracted.  Real holes (the inside of an O) enclose many background
    pixels and stay.
-5. :func:`smooth_widths` — the reference's width QP (Laplacian equations + data equations, weight 1)
+5. :func:`prune_covered_spurs` — B19's ``removeBranchesFilter1`` (not in the authors' code): short
+   dangling branches lying inside the stroke discs of the rest of the graph go, one per junction per
+   round.  This is what leaves a straight stroke's ragged tip as a path end instead of a fork.
+6. :func:`trim_hooked_tips` — leaves that hook sideways inside their neighbour's disc (rounded tips).
+7. :func:`join_singular_ends` — B19's ``connectStuffAroundSingularities`` (not in the authors' code):
+   traces stop at the singularity of a Y junction; joining the dangling end there to the other
+   branches gives the Y its valence-3 vertex (edges with ``edge_curve`` −1).
+8. :func:`smooth_widths` — the reference's width QP (Laplacian equations + data equations, weight 1)
    solved as one sparse linear solve ``(λ² LᵀL + I) w = w_raw`` and clipped to the raw range (instead
    of Gurobi with ±max bounds: the unconstrained optimum is a smoothing of the raw widths, so clipping
    to their range only guards against round-off and never binds by more than that).
+
+Steps 2–7 only delete or add edges; vertices left without edges are dropped at the end, and the
+component filter runs again after the joins.
 """
 
 from __future__ import annotations
@@ -40,7 +50,6 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
-from stages.graph.cross_section import streamline_edges
 
 
 def _adjacency(n: int, edges: np.ndarray) -> list[set]:
