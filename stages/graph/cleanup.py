@@ -34,8 +34,10 @@ Steps, in the order :func:`stages.graph.run` applies them:
    branches gives the Y its valence-3 vertex (edges with ``edge_curve`` −1).
 8. :func:`smooth_widths` — the reference's width QP (Laplacian equations + data equations, weight 1)
    solved as one sparse linear solve ``(λ² LᵀL + I) w = w_raw`` and clipped to the raw range (instead
-   of Gurobi with ±max bounds: the unconstrained optimum is a smoothing of the raw widths, so clipping
-   to their range only guards against round-off and never binds by more than that).
+   of Gurobi with ±max bounds).  ``(I + λ² L²)⁻¹`` is not entry-wise positive, so the solution could in
+   principle overshoot the raw range at a spike; the clip is that safeguard (on the scanned drawings
+   it never binds: the solution stays 0.16 px above the smallest and 0.76 px below the largest raw
+   width on kitten).
 
 Steps 2–7 only delete or add edges; vertices left without edges are dropped at the end, and the
 component filter runs again after the joins.
