@@ -40,6 +40,17 @@ Choices made on purpose (vs. the paper and the authors' code)
   ≥ ``turn_min_cos`` (0 = "positive dot product").  Probing a few pixels away matters because the
   graph's Y vertices sit among singularities where single cross-sections are unreliable, and it
   does not depend on ``edge_curve`` (the authors' test passes blindly across added edges).
+  Allowed paths take the test at every valence-≥3 vertex (paper).  The coverage search applies it
+  only at vertices flagged next to a singularity (authors' search), and when that finds no walk it
+  searches again without it: on the scanned drawings the strict version left whole strokes
+  uncovered (banana tree: 78 % of the band instead of 99.6 %) because the only way to reach them
+  turned sharply at a graph junction.  Coverage first; the enumeration then ends paths at such a
+  junction (promoted synthetic key vertex) instead of turning.
+* **Junction key vertices.**  A junction keypoint prefers a graph vertex of valence ≥ 3 within the
+  radius (per branch class) over a nearer valence-2 one, and a path whose interior comes within
+  ``junction_zone_px`` of a junction key vertex must end there, pass through it, or end inside that
+  zone.  Through the real graph a Y keypoint otherwise lands a pixel down one branch and the two
+  other branches join into a path bypassing it.
 * **Pass-through at X/T.**  The paper wants X and T junctions "vectorized into two overlapping paths
   that pass through the keypoint" while allowed paths contain no other key vertex.  We emit both:
   paths end at every key vertex, and (``pass_through_junctions``) also run straight through junction

@@ -61,7 +61,7 @@ def _turn_allowed(g, turn_ptr, turn_ok, a_in: int, a_out: int) -> bool:
     return bool(turn_ok[turn_ptr[a_in] + (a_out - g.indptr[v])])
 
 
-def _chains(g, sub_arc: np.ndarray, nodes: set, arc_len: np.ndarray, vertices) -> tuple[list[Chain], dict]:
+def _chains(g, sub_arc: np.ndarray, nodes: set, arc_len: np.ndarray) -> tuple[list[Chain], dict]:
     """Both directions of every chain; ``by_start[node]`` lists chain indices leaving a node."""
     chains: list[Chain] = []
     seen_arc = set()
@@ -230,7 +230,7 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
             if not _turn_allowed(g, turn_ptr, turn_ok, int(g.arc_rev[a]), b):
                 nodes.add(v)
         through = {v for v in passable if v in terminals and sub_deg[v - v0] == 2}
-        chains, by_start = _chains(g, sub_arc, nodes, arc_len, in_sub)
+        chains, by_start = _chains(g, sub_arc, nodes, arc_len)
         found: dict[tuple, tuple] = {}
         budget_hit = False
         for s in sorted(terminals):

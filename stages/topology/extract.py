@@ -26,6 +26,7 @@ from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
 from stages.topology.key_vertices import find_key_vertices
+from stages.topology.steiner import steiner_tree
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
 
@@ -148,8 +149,6 @@ class _Extractor:
                 self.stats["lone_component_terminals"] += 1
 
     def _steiner(self, c: int, csr, v0: int) -> np.ndarray:
-        from stages.topology.steiner import steiner_tree
-
         term = np.array(sorted(self.terminals[c]), np.int64) - v0
         return steiner_tree(csr, term, self.conf.steiner_method) + v0
 
