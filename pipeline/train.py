@@ -92,8 +92,11 @@ class DrawingStream(torch.utils.data.IterableDataset):
         rules = LabelRules.from_dict(self.cfg["train"]["labels"])
         per = int(self.cfg["train"]["crops_per_image"])
         c = self.crop
+        kp_prob = float(self.cfg["train"]["keypoint_crop_prob"])
         while True:
-            x, t, b = prepare_sample(generate(rng, gcfg, rules), self.cfg)
+            sample = generate(rng, gcfg, rules)
+            x, t, b = prepare_sample(sample, self.cfg)
+            pts = sample.points
             h, w = x.shape
             ph, pw = max(c - h, 0), max(c - w, 0)
             if ph or pw:
@@ -102,11 +105,18 @@ class DrawingStream(torch.utils.data.IterableDataset):
                 b = np.pad(b, ((0, ph), (0, pw)))
                 h, w = x.shape
             for _ in range(per):
-                # Prefer crops that contain ink.
-                for _try in range(4):
-                    i0, j0 = rng.integers(0, h - c + 1), rng.integers(0, w - c + 1)
-                    if b[i0:i0 + c, j0:j0 + c].mean() > 0.01:
-                        break
+                if len(pts) and rng.random() < kp_prob:
+                    # Centre-ish on a keypoint: positives are rare, and this is where learning is.
+                    px, py = pts[rng.integers(len(pts))]
+                    m = min(8, c // 4)
+                    i0 = int(np.clip(int(py) - rng.integers(m, c - m), 0, h - c))
+                    j0 = int(np.clip(int(px) - rng.integers(m, c - m), 0, w - c))
+                else:
+                    # Any crop with some ink.
+                    for _try in range(4):
+                        i0, j0 = rng.integers(0, h - c + 1), rng.integers(0, w - c + 1)
+                        if b[i0:i0 + c, j0:j0 + c].mean() > 0.01:
+                            break
                 yield (torch.from_numpy(np.ascontiguousarray(x[None, i0:i0 + c, j0:j0 + c])),
                        torch.from_numpy(np.ascontiguousarray(t[:, i0:i0 + c, j0:j0 + c])),
                        torch.from_numpy(np.ascontiguousarray(b[None, i0:i0 + c, j0:j0 + c])))
@@ -246,6 +256,13 @@ def train(cfg: dict) -> dict:
     lr0 = float(tc["lr"])
     opt = torch.optim.Adam(model.parameters(), lr=lr0, weight_decay=float(tc["weight_decay"]))
     start, elapsed0 = 0, 0.0
+    if tc.get("init_weights") and not (tc["resume"] and (out / "last.pt").is_file()):
+        # Warm start (fine-tuning) from an exported or training checkpoint of the same network.
+        ck = torch.load(tc["init_weights"], map_location=device, weights_only=False)
+        if ck["network"] != net_cfg.to_dict():
+            raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}")
+        sd = ck.get("state_dict", ck.get("model"))
+        model.load_state_dict({k: v.float() for k, v in sd.items()})
     history: list[dict] = []
     last = out / "last.pt"
     if tc["resume"] and last.is_file():
@@ -277,6 +294,7 @@ def train(cfg: dict) -> dict:
     max_s = float(tc["max_minutes"]) * 60 if tc.get("max_minutes") else math.inf
     step = start
     run_loss = None
+    loss_curve: list[float] = []  # raw loss of every step of this session
     stopped_early = False
     done = False
     if device.type == "cuda":
@@ -309,6 +327,7 @@ def train(cfg: dict) -> dict:
             done = step >= steps or (budget_s is not None and frac >= 1.0)
             lv = float(loss.detach())
             run_loss = lv if run_loss is None else 0.98 * run_loss + 0.02 * lv
+            loss_curve.append(round(lv, 5))
             log.update(step, f"loss {run_loss:.4f} crop {crop} lr {lr:.2e}")
             if step % int(tc["log_every"]) == 0:
                 log.line(f"step {step} loss {run_loss:.4f} crop {crop} lr {lr:.2e} "
@@ -341,7 +360,8 @@ def train(cfg: dict) -> dict:
     model_cpu.load_state_dict({k: v.float().cpu() for k, v in model.state_dict().items()})
     export_weights(model_cpu, out / "keypoints.pt", {k: v for k, v in record.items() if k != "history"}
                    | {"config": cfg["train"], "last_val": history[-1] if history else None})
-    (out / "record.json").write_text(json.dumps(record, indent=2))
+    (out / "record.json").write_text(json.dumps(record | {"loss_curve": loss_curve}, indent=2))
+    record["loss_curve"] = loss_curve
     return record
 
 

@@ -103,6 +103,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     band = None
     if cfg["restrict_to_band"] and "mask" in prep.arrays:
         band = dilate_band(np.asarray(prep["mask"], bool), int(cfg["band_dilation"]))
+        heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
     points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
                                            band, bool(cfg["subpixel"]))
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}

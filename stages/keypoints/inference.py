@@ -14,8 +14,8 @@ Choices made on purpose
   720-px tiles, which leaves seams and loses keypoints on tile borders.
 * **Peaks**: ``skimage.feature.peak_local_max`` on H1 with ``threshold`` (authors 0.5) and
   ``min_distance`` (authors 1, which lets duplicate peaks 2 px apart through; 3 by default), only
-  within ``band_dilation`` px of the narrow band (the loss only ever saw the band, so H1 is not
-  trained off it). Positions are refined to sub-pixel by a parabola through the 3×3 neighbourhood
+  within ``band_dilation`` px of the narrow band: the loss only ever saw the band, so the heatmaps
+  are meaningless off it — they are zeroed there before NMS (and in the artifact). Positions are refined to sub-pixel by a parabola through the 3×3 neighbourhood
   and reported at pixel centres, (j + 0.5, i + 0.5) + offset.
 * **Type** = argmax of H2..H4 at the peak pixel (endpoint 1, junction 3, corner 5).
 """
@@ -137,10 +137,12 @@ def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
         float32 (N,) H1 at the peaks.
     """
     h1 = heatmaps[0]
+    if band is not None:
+        # Mask before NMS: H1 is untrained off the band, and a high value there would suppress
+        # the real peaks within min_distance.
+        h1 = np.where(band, h1, 0.0)
     coords = peak_local_max(h1, min_distance=max(int(min_distance), 1), threshold_abs=threshold,
                             exclude_border=False)
-    if band is not None and len(coords):
-        coords = coords[band[coords[:, 0], coords[:, 1]]]
     if len(coords) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, np.int8), np.zeros(0, np.float32)
     i, j = coords[:, 0], coords[:, 1]

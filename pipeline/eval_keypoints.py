@@ -1,0 +1,187 @@
+"""Score the keypoint stage on a folder of drawings with ground-truth keypoints.
+
+Usage::
+
+    python -m pipeline.eval_keypoints DIR [--weights PATH] [--threshold 0.5] [--min-distance 3]
+                                          [--limit N] [--render OUT_DIR] [--json OUT.json]
+
+``DIR`` holds ``<name>.png`` drawings, each with ``<name>.json`` (the realvec_dev format: lists
+``endpoints``, ``junctions``, ``corners`` of (x, y)) or ``<name>.pts`` (the authors' format: ``N`` then
+``row col type`` lines, y first). ``DIR`` may also be a single PNG file. Every drawing goes through the
+real stages — ``prep`` then ``keypoints`` with conf/prep/default.yaml and conf/keypoints/default.yaml
+(plus the options above) — and is scored by :mod:`stages.evaluate.keypoints`:
+
+* the authors' F1 (radius 1 % of the padded height, per class and all types together), averaged over
+  drawings;
+* one-to-one matching within ``--radius`` px (default 5): detection F1 pooled over all drawings, and
+  classification accuracy on the matched points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stages.evaluate.keypoints import TYPES, MatchResult, f1_authors, f1_authors_per_class, match_keypoints, read_pts
+
+_JSON_KEYS = (("endpoints", 1), ("junctions", 3), ("corners", 5))
+
+
+def load_ground_truth(png: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """Ground-truth keypoints beside ``png`` (``.json`` or ``.pts``), or None."""
+    js = png.with_suffix(".json")
+    if js.is_file():
+        d = json.loads(js.read_text())
+        pts, types = [], []
+        for key, code in _JSON_KEYS:
+            for p in d.get(key, []):
+                pts.append(p[:2])
+                types.append(code)
+        return np.asarray(pts, float).reshape(-1, 2), np.asarray(types, np.int8)
+    for pts_path in (png.with_suffix(".pts"), png.parent / (png.name + ".pts")):
+        if pts_path.is_file():
+            return read_pts(pts_path.read_text())
+    return None
+
+
+def _configs(overrides: dict) -> tuple[dict, dict]:
+    import yaml
+
+    import conf
+
+    root = Path(conf.__file__).resolve().parent
+    prep_cfg = yaml.safe_load((root / "prep" / "default.yaml").read_text())
+    kp_cfg = yaml.safe_load((root / "keypoints" / "default.yaml").read_text())
+    kp_cfg.update({k: v for k, v in overrides.items() if v is not None})
+    return prep_cfg, kp_cfg
+
+
+def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit: int | None = None,
+                    render_dir: Path | None = None) -> dict:
+    """Run prep + keypoints on every drawing with ground truth in ``folder`` and score it.
+
+    Returns
+    -------
+    dict
+        ``cases`` (per drawing figures) and ``summary`` (pooled / averaged figures).
+    """
+    from stages import prep as prep_stage
+    from stages import keypoints as kp_stage
+
+    prep_cfg, kp_cfg = _configs(kp_overrides)
+    pngs = [folder] if folder.is_file() else sorted(folder.glob("*.png"))
+    cases, pooled = [], MatchResult()
+    t_total = 0.0
+    for png in pngs:
+        gt = load_ground_truth(png)
+        if gt is None:
+            continue
+        if limit is not None and len(cases) >= limit:
+            break
+        gpts, gtypes = gt
+        p = prep_stage.run(prep_cfg, image_bytes=png.read_bytes(), image_name=png.name)
+        t0 = time.perf_counter()
+        a = kp_stage.run(kp_cfg, prep=p)
+        dt = time.perf_counter() - t0
+        t_total += dt
+        pts, types = a["points"], a["types"]
+        h = p["grey"].shape[0]
+        h_pad = h + (8 - h % 8)  # the authors' padded network input height
+        m = match_keypoints(gpts, gtypes, pts, types, radius)
+        pooled = pooled + m
+        case = {"name": png.stem, "n_gt": int(len(gpts)), "n_pred": int(len(pts)),
+                "f1_authors": f1_authors(gpts, pts, h_pad),
+                "f1_authors_class": {str(k): v for k, v in f1_authors_per_class(gpts, gtypes, pts, types, h_pad).items()},
+                "f1_matched": m.f1, "precision": m.precision, "recall": m.recall, "accuracy": m.accuracy,
+                "seconds": dt}
+        cases.append(case)
+        if render_dir is not None:
+            from PIL import Image
+
+            render_dir.mkdir(parents=True, exist_ok=True)
+            img = kp_stage.render_keypoints(p["grey"], a["heatmaps"], pts, types)
+            Image.fromarray(_with_gt(img, gpts)).save(render_dir / f"{png.stem}_keypoints.png")
+    n = max(len(cases), 1)
+    summary = {
+        "cases": len(cases),
+        "weights": kp_stage.load_model(kp_cfg["weights"])[1],
+        "radius_px": radius,
+        "f1_matched_pooled": pooled.f1, "precision_pooled": pooled.precision, "recall_pooled": pooled.recall,
+        "accuracy_pooled": pooled.accuracy,
+        "f1_matched_mean": sum(c["f1_matched"] for c in cases) / n,
+        "f1_authors_mean": sum(c["f1_authors"] for c in cases) / n,
+        "f1_authors_class_mean": {str(t): sum(c["f1_authors_class"][str(t)] for c in cases) / n for t in TYPES},
+        "class_f1_pooled": {str(t): pooled.class_f1(t) for t in TYPES},
+        "seconds_per_case": t_total / n,
+        "threshold": kp_cfg["threshold"], "min_distance": kp_cfg["min_distance"],
+    }
+    return {"summary": summary, "cases": cases}
+
+
+def _with_gt(img: np.ndarray, gpts: np.ndarray) -> np.ndarray:
+    """Mark ground-truth points with small black crosses."""
+    img = img.copy()
+    h, w = img.shape[:2]
+    for x, y in gpts:
+        i, j = int(np.floor(y)), int(np.floor(x))
+        for d in range(-2, 3):
+            if 0 <= i + d < h and 0 <= j < w:
+                img[i + d, j] = 0
+            if 0 <= i < h and 0 <= j + d < w:
+                img[i, j + d] = 0
+    return img
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipeline.eval_keypoints", description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--weights", default=None, help="checkpoint (default: the packaged weights)")
+    ap.add_argument("--threshold", type=float, default=None)
+    ap.add_argument("--min-distance", type=int, default=None)
+    ap.add_argument("--radius", type=float, default=5.0, help="one-to-one matching radius, px")
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--render", type=Path, default=None, help="write overlays here")
+    ap.add_argument("--json", type=Path, default=None, help="write all figures here")
+    args = ap.parse_args(argv)
+    if not args.folder.exists():
+        print(f"error: {args.folder} does not exist", file=sys.stderr)
+        return 2
+    res = evaluate_folder(args.folder, {"weights": args.weights, "threshold": args.threshold,
+                                        "min_distance": args.min_distance}, args.radius, args.limit, args.render)
+    s = res["summary"]
+    if s["cases"] == 0:
+        print(f"error: no PNG with a .json or .pts ground truth in {args.folder}", file=sys.stderr)
+        return 2
+    try:
+        from rich.console import Console
+        from rich.table import Table
+
+        t = Table(title=f"keypoints on {args.folder} ({s['cases']} drawings, weights {s['weights']})")
+        t.add_column("metric")
+        t.add_column("value", justify="right")
+        rows = [("detection F1, one-to-one ≤ %.0f px (pooled)" % s["radius_px"], s["f1_matched_pooled"]),
+                ("  precision / recall", f"{s['precision_pooled']:.3f} / {s['recall_pooled']:.3f}"),
+                ("classification accuracy on matched points", s["accuracy_pooled"]),
+                ("detection F1, one-to-one (mean per drawing)", s["f1_matched_mean"]),
+                ("authors' F1, ρ = 1 % height (mean per drawing)", s["f1_authors_mean"])]
+        names = {"1": "endpoint", "3": "junction", "5": "corner"}
+        rows += [(f"authors' F1 {names[k]}", v) for k, v in s["f1_authors_class_mean"].items()]
+        rows += [(f"class F1 one-to-one {names[k]} (pooled)", v) for k, v in s["class_f1_pooled"].items()]
+        rows += [("seconds per drawing (keypoints stage)", s["seconds_per_case"])]
+        for k, v in rows:
+            t.add_row(k, v if isinstance(v, str) else f"{v:.3f}")
+        Console().print(t)
+    except ImportError:  # pragma: no cover
+        print(json.dumps(s, indent=2))
+    if args.json is not None:
+        args.json.write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""Benchmark: the keypoints stage on a 700×700 drawing (target ≤ 2 s on a 2-core CPU).
+
+Run: ``python tests/benchmarks/bench_keypoints.py [--repeat 5] [--size 700]``. Prints the time of
+``stages.keypoints.run`` (1 torch thread, as inside a worker — the stage sets it) and, for comparison,
+of the network alone with 2 threads. Not a test: timings depend on the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from stages.artifact import Artifact
+from stages.keypoints import load_model, run
+from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, generate
+from stages.keypoints.labels import LabelRules
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def drawing(size: int) -> Artifact:
+    """A procedural drawing of ``size``×``size`` px (a 320-px drawing scaled up, clean ink)."""
+    rng = np.random.default_rng(7)
+    cfg = GeneratorConfig(primitives_min=12, primitives_max=12, pencil_prob=0.0)
+    s = generate(rng, cfg, LabelRules())
+    k = size / s.grey.shape[0]
+    strokes = [p * k for p in s.strokes]
+    widths = [w * k * 0.6 for w in s.widths]
+    d = drawing_from_strokes(rng, strokes, (size, size), cfg, LabelRules(), widths)
+    return Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.647}, data={})
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--size", type=int, default=700)
+    args = ap.parse_args()
+    cfg = yaml.safe_load((ROOT / "conf" / "keypoints" / "default.yaml").read_text())
+    prep = drawing(args.size)
+    model, name = load_model(cfg["weights"])
+    run(cfg, prep=prep)  # warm-up (model load, allocator)
+    times = []
+    for _ in range(args.repeat):
+        t = time.perf_counter()
+        a = run(cfg, prep=prep)
+        times.append(time.perf_counter() - t)
+    print(f"keypoints.run {args.size}x{args.size} ({name}, {cfg['torch_threads']} thread): "
+          f"min {min(times):.2f} s, median {np.median(times):.2f} s, {len(a['points'])} keypoints")
+    torch.set_num_threads(2)
+    x = torch.rand(1, 1, (args.size // 8 + 1) * 8, (args.size // 8 + 1) * 8)
+    nt = []
+    with torch.inference_mode():
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            model(x)
+            nt.append(time.perf_counter() - t)
+    print(f"network alone, 2 threads: min {min(nt):.2f} s, median {np.median(nt):.2f} s")
+
+
+if __name__ == "__main__":
+    main()
