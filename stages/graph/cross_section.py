@@ -153,7 +153,9 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g
                                     cg = abs(tcx * gr.real + tcy * gr.imag)
                                     X = px + a * ex
                                     Y = py + a * ey
-                                    if cf >= cg and not singular[int(Y), int(X)] and ncr < cap_cr:
+                                    yi = min(max(int(Y), 0), H - 1)
+                                    xj = min(max(int(X), 0), W - 1)
+                                    if cf >= cg and not singular[yi, xj] and ncr < cap_cr:
                                         cr_curve[ncr] = c
                                         cr_param[ncr] = li + b
                                         cr_s[ncr] = sgn * (s + a * h)

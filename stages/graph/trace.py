@@ -232,8 +232,10 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                     if not ok:
                         reason = DEGENERATE
                         break
-                    qx = px + h * nd.real
-                    qy = py + h * nd.imag
+                    # samples are stored as float32: test the pixel of the rounded position, or a
+                    # point a hair inside the last row/column could be stored outside the image
+                    qx = np.float64(np.float32(px + h * nd.real))
+                    qy = np.float64(np.float32(py + h * nd.imag))
                     if qx < 0 or qy < 0 or qx >= W or qy >= H:
                         reason = LEFT
                         break

@@ -273,6 +273,29 @@ def test_empty_band_gives_an_empty_graph():
     assert len(a["streamline_xy_offsets"]) == 1 and len(a["vertex_members_offsets"]) == 1
 
 
+@pytest.mark.parametrize("shape", [(1, 30), (30, 1), (2, 2)])
+def test_strokes_on_the_image_border(shape):
+    """Traces that reach the last row/column (stored as float32) must stay inside the image."""
+    mask = np.zeros(shape, bool)
+    mask[tuple(slice(1, -1) if n > 2 else slice(None) for n in shape)] = True
+    grey = np.where(mask, 0.0, 1.0).astype(np.float32)
+    p = Artifact(arrays={"grey": grey, "mask": mask})
+    a = _graph(p, field.run(_cfg("field"), prep=p))
+    xy = a["streamline_xy"]
+    assert ((xy >= 0) & (xy < np.array(shape[::-1]))).all()
+
+
+def test_random_drawings_touching_the_border_do_not_fail():
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        h, w = rng.integers(3, 40, 2)
+        strokes = [rng.uniform(-4, [w + 4, h + 4], size=(3, 2)) for _ in range(2)]
+        grey = synthetic.render((int(h), int(w)), strokes, float(rng.uniform(1, 5)))
+        a = _graph(*_inputs_from_grey(grey))
+        deg = np.bincount(a["edges"].ravel(), minlength=len(a["vertex_xy"]))
+        assert (deg > 0).all()
+
+
 def test_missing_or_mismatched_inputs_raise_input_error():
     p, f = _inputs("line")
     with pytest.raises(InputError):
