@@ -26,16 +26,9 @@ from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
 from stages.topology.key_vertices import find_key_vertices
-from stages.topology.steiner import steiner_tree
+from stages.topology.steiner import path_to_source, steiner_tree
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
-
-
-def _path_from_pred(pred: np.ndarray, v: int) -> list[int]:
-    out = [v]
-    while pred[out[-1]] >= 0:
-        out.append(int(pred[out[-1]]))
-    return out
 
 
 class _Extractor:
@@ -142,7 +135,7 @@ class _Extractor:
             f = int(np.argmax(d))
             if d[f] <= 0:
                 return
-            path = np.array(_path_from_pred(pred, f), np.int64) + v0
+            path = np.array(path_to_source(pred, f), np.int64) + v0
             eids = self.edge_ids(path[:-1], path[1:])
             if self.cov.new_pixels(eids) >= self.conf.min_new_pixels:
                 self.add_terminal(c, f + v0)
@@ -202,11 +195,10 @@ class _Extractor:
         v1 = int(g.comp_ptr[c + 1])
         rejected = np.zeros(v1 - v0, bool)
         source = np.zeros(self.n, bool)
+        a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
         while True:
-            a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
             used = np.zeros(v1 - v0, bool)
-            tails = self.tails[a0:a1]
-            used[tails[self.sub_edge[g.arc_edge[a0:a1]]] - v0] = True
+            used[self.tails[a0:a1][self.sub_edge[g.arc_edge[a0:a1]]] - v0] = True
             used[np.array([v - v0 for v in self.terminals[c]], np.int64)] = True
             d, pred, _ = dijkstra(csr, directed=True, indices=np.nonzero(used)[0], min_only=True,
                                return_predecessors=True)
@@ -227,7 +219,7 @@ class _Extractor:
                 cov.add(eids, walk[0])
                 self.stats["loop_b_paths"] += 1
             else:
-                rejected[_path_from_pred(pred, f)] = True
+                rejected[path_to_source(pred, f)] = True
                 self.stats["loop_b_rejected"] += 1
 
     def interest_distance(self) -> np.ndarray:

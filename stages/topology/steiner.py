@@ -18,8 +18,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra, minimum_spanning_tree
 
 
-def _path_to_source(pred: np.ndarray, v: int) -> list[int]:
-    out = [v]
+def path_to_source(pred: np.ndarray, v: int) -> list[int]:
+    """Vertices from ``v`` back to its Dijkstra source along scipy's predecessor array."""
+    out = [int(v)]
     while pred[out[-1]] >= 0:
         out.append(int(pred[out[-1]]))
     return out
@@ -100,14 +101,14 @@ def steiner_tree(csr: sp.csr_matrix, terminals: np.ndarray, method: str = "mehlh
         # 4. Expansion back into graph edges.
         for a, b in zip(mst.row, mst.col):
             i = lookup[(min(a, b), max(a, b))]
-            add_path(_path_to_source(pred, int(u[i]))[::-1] + _path_to_source(pred, int(v[i])))
+            add_path(path_to_source(pred, int(u[i]))[::-1] + path_to_source(pred, int(v[i])))
     elif method == "kou":
         dist, pred = dijkstra(csr, directed=True, indices=terminals, return_predecessors=True)
         closure = dist[:, terminals]
         closure[~np.isfinite(closure)] = 0
         mst = minimum_spanning_tree(sp.csr_matrix(np.triu(closure, 1))).tocoo()
         for a, b in zip(mst.row, mst.col):
-            add_path(_path_to_source(pred[a], int(terminals[b])))
+            add_path(path_to_source(pred[a], int(terminals[b])))
     else:
         raise ValueError(f"unknown Steiner method {method!r}")
     return _mst_and_prune(csr, edges, terminals)

@@ -203,3 +203,22 @@ def synthetic_inputs(drawing, spacing: float = 1.0, keypoints=None, join_tol: fl
                          data={"points": [{"x": float(x), "y": float(y), "type": int(t), "score": 1.0}
                                           for x, y, t in kps]})
     return {"prep": prep, "field": field, "graph": graph, "keypoints": keypoints}
+
+
+def ladder(n_rungs: int, gap: float = 8.0, height: float = 24.0, width: float = 2.0):
+    """Two rails and ``n_rungs`` rungs meeting at shared ends: one component with ``n_rungs`` cycles.
+
+    Keypoints only at the four rail ends, so every cycle must come from the coverage loop — the kind
+    of component on which the authors' constrained path search gives up.
+    """
+    from stages.synthetic import Drawing, render
+
+    xs = 10 + gap * np.arange(n_rungs + 2)
+    top, bot = 10.0, 10.0 + height
+    strokes = []
+    for a, b in zip(xs[:-1], xs[1:]):
+        strokes += [np.array([[a, top], [b, top]]), np.array([[a, bot], [b, bot]])]
+    strokes += [np.array([[x, top], [x, bot]]) for x in xs[1:-1]]
+    shape = (int(bot + 12), int(xs[-1] + 12))
+    kps = [(xs[0], top, 1), (xs[-1], top, 1), (xs[0], bot, 1), (xs[-1], bot, 1)]
+    return Drawing(render(shape, strokes, width), strokes, width, kps)

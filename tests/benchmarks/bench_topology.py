@@ -109,27 +109,14 @@ def _image(name: str) -> Path:
     return SHARED / "realvec_dev" / f"{name}.png"
 
 
-def _ladder(n_rungs: int):
-    from stages.synthetic import Drawing, render
-
-    xs = 10 + 8.0 * np.arange(n_rungs + 2)
-    top, bot = 10.0, 34.0
-    strokes = []
-    for a, b in zip(xs[:-1], xs[1:]):
-        strokes += [np.array([[a, top], [b, top]]), np.array([[a, bot], [b, bot]])]
-    strokes += [np.array([[x, top], [x, bot]]) for x in xs[1:-1]]
-    kps = [(xs[0], top, 1), (xs[-1], top, 1), (xs[0], bot, 1), (xs[-1], bot, 1)]
-    return Drawing(render((46, int(xs[-1] + 12)), strokes, 2.0), strokes, 2.0, kps)
-
-
 def _case_inputs(name: str, cache: Path, keypoints: str) -> tuple[dict, np.ndarray]:
     from stages import synthetic
-    from stages.topology.synthetic_graph import synthetic_inputs
+    from stages.topology.synthetic_graph import ladder, synthetic_inputs
 
     if name == "ladder-200":
         key = cache / "ladder-200.pkl"
         if not key.exists():
-            key.write_bytes(pickle.dumps(synthetic_inputs(_ladder(200))))
+            key.write_bytes(pickle.dumps(synthetic_inputs(ladder(200))))
         inputs = pickle.loads(key.read_bytes())
         return inputs, inputs["prep"]["grey"]
     if name == "synthetic":
