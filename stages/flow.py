@@ -36,11 +36,13 @@ Choices made on purpose (vs. the paper and the authors' code)
   allowed path is flowed and the MIP chooses among the flowed curves with their energies as costs.
   This is our DAG (flow → select), and it lets a λ sweep re-run only flow → select → export.
 * **What is implicit.**  Eq. 10 puts the complex ``G = g + i g'`` and the normal force ``F`` into the
-  matrix (coefficients frozen, so this is not a linearisation and buys no stability).  We keep only
-  the isotropic part implicit and take the *full* positional gradient (the paper keeps its normal
-  component): with the normal part only, the fixed point is not a stationary point of E_ε and the
-  energy of some paths rose by 2 % over the run.  On the synthetic vee/zigzag/Y the explicit variant
-  reached equal or lower energies than the paper's structure, with fewer rejected steps (below).
+  matrix.  With frozen coefficients that is not a linearisation and buys no stability: on the
+  synthetic vee (real prep → field → graph → topology) that structure *raised* a path's energy by
+  2 % over 1500 iterations at α = 1e-2 (it settles in a worse state after oscillating).  We keep only
+  the isotropic part implicit (unconditionally stable) and the anisotropy explicit; with the step
+  control below the same path's energy falls by 3 %, and the vee/zigzag/X/T/Y candidates end at
+  equal or lower energies than with Eq. 10's structure.  We also take the *full* positional gradient
+  (the paper keeps its normal component), so that a fixed point is a stationary point of E_ε.
 * **Monotone energy.**  An iteration whose new curve has a higher E_ε than the previous one is
   undone and that path's step is halved (then regrown ×1.25 per accepted step up to α).  The flow
   therefore never raises a path's energy, whatever α; on drawings ~10 % of the iterations are undone,
