@@ -279,13 +279,14 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
         if fid["fid_blank"] and not row["error"]:
             row["error"] = "blank output (no ink after rasterising the curves)"
         topo = extract_topology(curves, width, tparams)
-        pic["markers"] = {"free_end": topo.free_ends, "junction": topo.junctions, "gap": topo.gaps[:, :2]}
+        pic["markers"] = {"duplicate": topo.duplicated_points, "free_end": topo.free_ends,
+                          "junction": topo.junctions, "gap": topo.gaps[:, :2]}
     elif expects_curves and not row["error"]:
         row["error"] = "no curves"
     if case.strokes is not None:
         gt_topo = extract_topology(case.strokes, width, tparams)
-        pic["gt"] = (case.strokes, {"free_end": gt_topo.free_ends, "junction": gt_topo.junctions,
-                                    "gap": gt_topo.gaps[:, :2]})
+        pic["gt"] = (case.strokes, {"duplicate": gt_topo.duplicated_points, "free_end": gt_topo.free_ends,
+                                    "junction": gt_topo.junctions, "gap": gt_topo.gaps[:, :2]})
         if curves is not None:
             row.update(compare_topology(topo, gt_topo, width, tparams))
     elif curves is not None:
@@ -449,7 +450,8 @@ def html_report(rows: list[dict], tables: dict, pictures: dict[str, str], bcfg: 
              f"<p>{esc(extra.get('command', ''))}<br>{len(rows)} cases; batch wall time "
              f"{extra.get('batch_wall_s', 0):.1f} s; stages: {esc(', '.join(extra.get('stages', [])))}</p>",
              "<p>Pictures: output curves (one colour each) with their <b style='color:#00a000'>free ends</b>, "
-             "<b style='color:#dc0000'>junctions</b> and <b style='color:#ff8c00'>junction gaps</b>; then the "
+             "<b style='color:#dc0000'>junctions</b>, <b style='color:#ff8c00'>junction gaps</b> and "
+             "<b style='color:#ff00ff'>duplicated pieces</b> (magenta dots); then the "
              "ground truth with the same extraction; then the detected keypoints (green endpoint, red junction, "
              "blue corner).</p>"]
     for title, entries in tables.items():

@@ -17,7 +17,11 @@ MARKER_COLOURS = {
     "corner": (0, 90, 255),
     "gap": (255, 140, 0),
     "gt": (170, 0, 200),
+    "duplicate": (255, 0, 255),
 }
+
+#: Marker radius (output pixels) by meaning, where it differs from ``marker_radius``.
+MARKER_RADII = {"duplicate": 1}
 
 
 def curve_colours(n: int) -> np.ndarray:
@@ -81,7 +85,7 @@ def overlay(
     for name, pts in (markers or {}).items():
         colour = MARKER_COLOURS.get(name, (0, 0, 0))
         for x, y in np.asarray(pts, dtype=np.float64).reshape(-1, 2)[:, :2] * scale:
-            rr, cc, val = circle_perimeter_aa(int(np.floor(y)), int(np.floor(x)), marker_radius)
+            rr, cc, val = circle_perimeter_aa(int(np.floor(y)), int(np.floor(x)), MARKER_RADII.get(name, marker_radius))
             _blend(img, rr, cc, val, colour)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 

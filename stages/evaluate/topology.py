@@ -90,6 +90,8 @@ class Topology:
         Indices of dangling-branch curves.
     duplicated_length : float
         Pixels (see the module notes).
+    duplicated_points : numpy.ndarray
+        (k, 2) points of the duplicated pieces, about every 2 px (for pictures).
     n_curves : int
         Non-degenerate curves.
     total_length : float
@@ -103,6 +105,7 @@ class Topology:
     gaps: np.ndarray
     dangling: list[int] = field(default_factory=list)
     duplicated_length: float = 0.0
+    duplicated_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     n_curves: int = 0
     total_length: float = 0.0
 
@@ -358,6 +361,7 @@ def extract_topology(curves: Sequence, width: float, params: TopologyParams) -> 
         gaps=np.array(gaps, dtype=np.float64).reshape(-1, 3),
         dangling=dangling,
         duplicated_length=duplicated,
+        duplicated_points=S[overlapping][:: max(1, int(round(2.0 / step)))],
         n_curves=nc,
         total_length=float(lengths.sum()),
     )
