@@ -45,4 +45,4 @@ def test_lambda_and_dt_sweep_recomputes_only_downstream(tmp_path, cli):
     # each job's SVG lands in a folder named after its overrides
     svgs = sorted(p.parent.name for p in (tmp_path / "out").glob("*/vee.svg"))
     assert len(svgs) == jobs
-    assert "flow.dt=0.005,flow.lam=0.05" in svgs
+    assert "flow.dt=0.005,flow.iterations=60,flow.lam=0.05" in svgs
