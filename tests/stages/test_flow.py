@@ -345,3 +345,33 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
         ij = np.clip(np.floor(c[:, ::-1]).astype(int), 0, 63)
         assert dist[ij[:, 0], ij[:, 1]].max() < d.width / 2 + 1.0
     assert all(e1 <= e0 + 1e-9 for e0, e1 in zip(art.data["energies_initial"], art.data["energies"]))
+
+
+def _real_field(drawing):
+    from stages import field as field_stage, prep as prep_stage
+
+    cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731
+    p = prep_stage.run(cfg("prep"), image_bytes=drawing.png_bytes(), image_name="synthetic")
+    f = field_stage.run(cfg("field"), prep=p)
+    return f["c0_ext"], f["c2_ext"]
+
+
+def test_with_the_real_field_a_noisy_17_degree_path_is_centred():
+    d = synthetic.line(angle=17)
+    c0, c2 = _real_field(d)
+    a, b = d.strokes[0]
+    for seed in range(2):
+        xy0, nrm, s = noisy_path(a, b, noise=0.5, seed=seed)
+        res = _run_one(c0, c2, xy0, interest=np.minimum(s, s[-1] - s))
+        assert _line_distance(res.curves[0], a, nrm).max() < 0.5
+        assert res.energies[0] < res.energies_initial[0]
+
+
+def test_with_the_real_field_a_path_through_an_x_stays_on_its_branch():
+    d = synthetic.cross(angle1=10, angle2=70)
+    c0, c2 = _real_field(d)
+    for k in range(2):
+        a, b = d.strokes[k]
+        xy0, nrm, s = noisy_path(a, b, noise=0.3, seed=k)
+        res = _run_one(c0, c2, xy0, interest=np.minimum(np.abs(s - s[-1] / 2), np.minimum(s, s[-1] - s)))
+        assert _line_distance(res.curves[0], a, nrm).max() < 0.5
