@@ -826,6 +826,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         n = len(xy)
         wd = np.asarray(p.get("widths", []), dtype=np.float64).ravel()
         dd = np.asarray(p.get("interest_dist", []), dtype=np.float64).ravel()
+        dd = np.where(np.isposinf(dd), 1e9, dd)   # "no interesting vertex reachable": far away
         if n < 1 or len(wd) != n or len(dd) != n:
             raise InputError(f"flow: path {p.get('id')} needs xy, widths and interest_dist of equal length ≥ 1")
         if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(wd)) and np.all(np.isfinite(dd))):
