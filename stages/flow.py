@@ -365,7 +365,7 @@ def _corner(fld, i, j, h, w):
 
 @numba.njit(cache=True, inline="always")
 def _bilinear_field(fld: np.ndarray, x: float, y: float):
-    """c0, ∂c0/∂x, ∂c0/∂y, c2, ∂c2/∂x, ∂c2/∂y at (x, y) from the packed field (see :func:`_bilinear`)."""
+    """c0, ∂c0/∂x, ∂c0/∂y, c2, ∂c2/∂x, ∂c2/∂y at (x, y) from the packed field (as :func:`_bilinear`)."""
     h = fld.shape[0]
     w = fld.shape[1]
     u = x - 0.5

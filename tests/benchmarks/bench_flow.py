@@ -17,9 +17,9 @@ The real cases run prep → field → graph → topology once (cached as pickles
 ``$TMPDIR/polyvec-bench-flow``, keyed by the image bytes, configs and stage sources).  Timed, per case:
 the flow (best of ``--repeat``, after a warm-up that loads the compiled kernel), select, export, and a
 λ re-run (``flow.lam`` halved: flow + select + export, what a sweep recomputes).  ``ns/v·it`` is the
-wall flow time per vertex and iteration; ``cpu`` sums the
-kernel's threads (``NUMBA_NUM_THREADS``; the engine's workers use 1).  ``--render`` writes PNGs (initial paths blue, flowed red, selected
-curves coloured) over the drawing.
+wall flow time per vertex and iteration; ``cpu`` sums the kernel's threads (``NUMBA_NUM_THREADS``; the
+engine's workers use 1).  ``--render`` writes PNGs (initial paths blue, flowed red, selected curves
+coloured) over the drawing.
 """
 
 from __future__ import annotations
@@ -57,10 +57,10 @@ def _source_hash(*paths: Path) -> str:
 
 
 def _cached(name: str, data: bytes, cache: Path, build):
-    key = hashlib.sha1(data + json.dumps([_cfg(s) for s in ("prep", "field", "graph", "topology")],
-                                         sort_keys=True).encode()
-                       + _source_hash(ROOT / "stages" / "prep.py", ROOT / "stages" / "field.py",
-                                      ROOT / "stages" / "graph", ROOT / "stages" / "topology").encode()).hexdigest()[:16]
+    stages = ROOT / "stages"
+    cfgs = json.dumps([_cfg(s) for s in ("prep", "field", "graph", "topology")], sort_keys=True).encode()
+    src = _source_hash(stages / "prep.py", stages / "field.py", stages / "graph", stages / "topology").encode()
+    key = hashlib.sha1(data + cfgs + src).hexdigest()[:16]
     out = cache / f"{name}-{key}.pkl"
     if out.exists():
         return pickle.loads(out.read_bytes())

@@ -27,7 +27,8 @@ def _inputs(paths, coverage, energies, key_types):
     kv = [{"vertex": k, "keypoint": k, "type": t, "xy": [0, 0], "component": 0} for k, t in key_types.items()]
     topo = Artifact(arrays={"coverage": flat, "coverage_offsets": off}, data={"paths": plist, "key_vertices": kv})
     return {"prep": Artifact(data={"height": 10, "width": 10}), "topology": topo,
-            "flow": Artifact(data={"energies": list(map(float, energies)), "energies_initial": list(map(float, energies))})}
+            "flow": Artifact(data={"energies": list(map(float, energies)),
+                                   "energies_initial": list(map(float, energies))})}
 
 
 def _run(paths, coverage, energies, key_types, **over):
@@ -108,7 +109,8 @@ def test_solver_failures_fall_back_and_report(monkeypatch, reason):
 
 
 def test_a_violating_solver_answer_is_not_trusted(monkeypatch):
-    monkeypatch.setattr(select, "solve_mip", lambda problem, params: (np.zeros(len(problem.cost), bool), "optimal", 0.0))
+    monkeypatch.setattr(select, "solve_mip",
+                        lambda problem, params: (np.zeros(len(problem.cost), bool), "optimal", 0.0))
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["status"].startswith("fallback: optimal answer violates")
     assert art.data["chosen"] == [11]
