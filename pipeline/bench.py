@@ -326,7 +326,7 @@ def _sort_key(sort_by: str):
     def key(row: dict):
         if row.get("error"):
             return (0, 0.0)
-        v = row.get(sort_by)
+        v = row.get(sort_by, row.get("fid_" + sort_by))  # plain images: their fidelity counterpart
         if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
             return (1, 0.0)
         return (2, -float(v) if lower_is_better else float(v))
@@ -367,7 +367,7 @@ def print_tables(tables: dict[str, list[dict]], console) -> None:
         cols = [k for k in entries[0] if k not in ("group", "cases", "failures")]
         cols = [c for c in cols if any(e[c]["n"] for e in entries)]
         t = Table(title=f"polyvec-bench — {title}: median (mean)", show_lines=False)
-        t.add_column("group")
+        t.add_column("group", no_wrap=True)
         t.add_column("cases", justify="right")
         t.add_column("fail", justify="right")
         for c in cols:
@@ -499,6 +499,15 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     bcfg = OmegaConf.to_container(cfg.bench, resolve=True)
     cases = discover_cases(list(bcfg["cases"] or []), bcfg.get("limit"))
     out = Path(str(bcfg["out"]))
+    try:  # a sweep (-m): one report per job, named after its overrides
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode == RunMode.MULTIRUN:
+            out = out / (hc.job.override_dirname or "default")
+    except ValueError:  # not running under Hydra
+        pass
     store = ArtifactStore(str(cfg.store.path))
     images = [c.image for c in cases]
     if len({str(i) for i in images}) != len(images):

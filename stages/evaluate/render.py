@@ -42,7 +42,7 @@ def overlay(
     curves: Sequence[np.ndarray] = (),
     markers: dict[str, np.ndarray] | None = None,
     scale: int = 1,
-    fade: float = 0.55,
+    fade: float = 0.35,
     marker_radius: int = 4,
 ) -> np.ndarray:
     """Draw polylines (one colour each) and marker circles over a faded copy of the drawing.
