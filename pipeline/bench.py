@@ -514,12 +514,12 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
         raise UsageError("the same image is listed twice in bench.cases")
     t0 = time.perf_counter()
     if bcfg["run_pipeline"]:
-        from pipeline.cli import _Progress
+        from pipeline.cli import StageProgress
         from pipeline.registry import active_stages
 
         stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
         show = bool(cfg.runtime.get("progress", True)) and console.is_terminal
-        with _Progress(stages, len(images), show) as prog:
+        with StageProgress(stages, len(images), show) as prog:
             batch = run_batch([str(i) for i in images], cfg, on_result=prog, store=store)
     else:
         batch = stored_keys([str(i) for i in images], cfg, store)

@@ -76,7 +76,7 @@ def job_output_dir(cfg: DictConfig) -> Path:
     return out
 
 
-class _Progress:
+class StageProgress:
     """rich progress: one bar per stage with computed / cached / failed counts."""
 
     def __init__(self, stages: list[str], n_images: int, enabled: bool):
@@ -150,7 +150,7 @@ def run(cfg: DictConfig) -> BatchResult:
     from pipeline.registry import active_stages
 
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
-    with _Progress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
+    with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         batch = run_batch(images, cfg, on_result=prog, store=store)
     write_outputs(batch, store, out_dir)
     print_summary(batch, console, bool(cfg.runtime.get("debug", False)))
