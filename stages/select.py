@@ -64,20 +64,27 @@ class SelectParams:
     threads: int
     gap_rel: float
     cap_valence: bool
+    cap_branches: bool = True
     valence: dict = field(default_factory=dict)
+    max_ends: dict = field(default_factory=dict)
+    excess_penalty: float = 0.0
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "SelectParams":
         """Build from the config dict; every key must be present."""
         try:
             v = cfg["valence"]
+            m = cfg["max_ends"]
             p = cls(time_limit=float(cfg["time_limit"]), threads=int(cfg["threads"]),
                     gap_rel=float(cfg["gap_rel"]), cap_valence=bool(cfg["cap_valence"]),
-                    valence={t: int(v[name]) for t, name in _TYPE_NAMES.items()})
+                    cap_branches=bool(cfg["cap_branches"]),
+                    valence={t: int(v[name]) for t, name in _TYPE_NAMES.items()},
+                    max_ends={t: int(m[name]) for t, name in _TYPE_NAMES.items() if m.get(name) is not None},
+                    excess_penalty=float(cfg["excess_penalty"]))
         except KeyError as e:
             raise InputError(f"select config is missing key {e}") from None
-        if p.time_limit <= 0 or p.threads < 1 or p.gap_rel < 0:
-            raise InputError("select config: need time_limit > 0, threads ≥ 1, gap_rel ≥ 0")
+        if p.time_limit <= 0 or p.threads < 1 or p.gap_rel < 0 or p.excess_penalty < 0:
+            raise InputError("select config: need time_limit > 0, threads ≥ 1, gap_rel ≥ 0, excess_penalty ≥ 0")
         return p
 
 
@@ -104,10 +111,22 @@ class SelectionProblem:
     keypoints: np.ndarray
     cover: sp.csr_matrix
     cover_pixels: np.ndarray
+    ends: sp.csr_matrix = None
+    ends_max: np.ndarray = None
+    ends_keypoints: np.ndarray = None
+    excess_penalty: float = 0.0
+
+    def penalty(self, chosen: np.ndarray) -> float:
+        """Soft upper-bound penalty of a 0/1 choice: ``excess_penalty`` per curve end beyond ``ends_max``."""
+        if self.ends is None or self.ends.shape[0] == 0:
+            return 0.0
+        over = np.asarray(self.ends @ np.asarray(chosen, np.float64)).ravel() - self.ends_max
+        return float(self.excess_penalty * np.maximum(over, 0.0).sum())
 
 
 def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarray,
-                  keypoint_types: dict[int, int], params: SelectParams) -> SelectionProblem:
+                  keypoint_types: dict[int, int], params: SelectParams,
+                  branches: dict[int, int] | None = None) -> SelectionProblem:
     """Assemble valence and coverage constraints.
 
     Parameters
@@ -121,31 +140,47 @@ def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarra
     keypoint_types : dict of int to int
         Keypoint id → type code (1/3/5); keypoints of other types are not constrained.
     params : SelectParams
+    branches : dict of int to int, optional
+        Keypoint id → number of covering-subgraph branches leaving it (topology
+        ``keypoint_branches``); the required valence is capped by it too.
 
     Returns
     -------
     SelectionProblem
     """
     npath = len(paths)
-    rows, cols = [], []
+    branches = branches or {}
+    rows, cols, thr = [], [], []
     for j, p in enumerate(paths):
         for k in p.get("end_keypoints", []):
             if int(k) >= 0:
                 rows.append(int(k))
                 cols.append(j)
+                thr.append(False)
         for k in p.get("through_keypoints", []) or []:
             if int(k) >= 0:
                 rows += [int(k), int(k)]
                 cols += [j, j]
+                thr += [True, True]
     kps = np.array(sorted({k for k in rows if keypoint_types.get(k) in params.valence}), np.int64)
     index = {int(k): i for i, k in enumerate(kps)}
-    keep = [i for i, k in enumerate(rows) if k in index]
+    # A path running through an *endpoint* is another stroke passing by: it gives the endpoint no valence.
+    keep = [i for i, k in enumerate(rows) if k in index and not (thr[i] and keypoint_types[k] == 1)]
     a = sp.csr_matrix((np.ones(len(keep)), ([index[rows[i]] for i in keep], [cols[i] for i in keep])),
                       shape=(len(kps), npath))
     a.sum_duplicates()
     need = np.array([params.valence[keypoint_types[int(k)]] for k in kps], np.float64)
     available = np.asarray(a.sum(axis=1)).ravel()
-    capped = np.minimum(need, available)
+    branch = np.array([branches.get(int(k), np.inf) if params.cap_branches else np.inf for k in kps], np.float64)
+    capped = np.minimum(np.minimum(need, available), branch)
+    # Soft upper bounds on the curve ends at endpoints and corners.
+    ek = np.array([k for k in kps if keypoint_types[int(k)] in params.max_ends], np.int64)
+    eindex = {int(k): i for i, k in enumerate(ek)}
+    ekeep = [i for i, k in enumerate(rows) if k in eindex and not thr[i]]
+    ends = sp.csr_matrix((np.ones(len(ekeep)), ([eindex[rows[i]] for i in ekeep], [cols[i] for i in ekeep])),
+                         shape=(len(ek), npath))
+    ends.sum_duplicates()
+    ends_max = np.array([params.max_ends[keypoint_types[int(k)]] for k in ek], np.float64)
 
     # Coverage: pixel → set of covering paths; one row per distinct set.
     counts = np.array([len(c) for c in coverage], np.int64)
@@ -173,7 +208,8 @@ def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarra
     cover = sp.csr_matrix((np.ones(int(sel.sum())), (row_of_group[group][sel], pid[sel])),
                           shape=(len(rep), npath))
     return SelectionProblem(cost=np.asarray(cost, np.float64), valence=a, valence_rhs=need,
-                            valence_capped=capped, keypoints=kps, cover=cover, cover_pixels=mult)
+                            valence_capped=capped, keypoints=kps, cover=cover, cover_pixels=mult,
+                            ends=ends, ends_max=ends_max, ends_keypoints=ek, excess_penalty=params.excess_penalty)
 
 
 def satisfies(problem: SelectionProblem, chosen: np.ndarray, capped: bool = True) -> bool:
@@ -255,6 +291,19 @@ def solve_mip(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarr
     c = problem.cover.tocsr()
     for i in range(c.shape[0]):
         prob += pulp.lpSum(x[j] for j in c.indices[c.indptr[i]:c.indptr[i + 1]]) >= 1, f"cover_{i}"
+    if problem.ends is not None and problem.ends.shape[0] and problem.excess_penalty > 0:
+        e = problem.ends.tocsr()
+        slack = []
+        for i in range(e.shape[0]):
+            lo, hi = e.indptr[i], e.indptr[i + 1]
+            if e.data[lo:hi].sum() <= problem.ends_max[i]:
+                continue                                        # cannot be exceeded
+            sv = prob.add_variable(f"excess_{int(problem.ends_keypoints[i])}", 0, None, cat=pulp.LpContinuous)
+            prob += (pulp.lpSum(float(m) * x[j] for j, m in zip(e.indices[lo:hi], e.data[lo:hi]))
+                     <= float(problem.ends_max[i]) + sv, f"ends_{int(problem.ends_keypoints[i])}")
+            slack.append(sv)
+        if slack:
+            prob.setObjective(prob.objective + problem.excess_penalty * pulp.lpSum(slack))
     try:
         with warnings.catch_warnings():
             # pulp 3.3 announces that PULP_CBC_CMD (its bundled CBC) moves to an extra in pulp 4.
@@ -269,7 +318,7 @@ def solve_mip(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarr
         vals = np.array([v.varValue if v.varValue is not None else 0.0 for v in x])
         chosen = vals > 0.5
         status = "optimal" if sol == pulp.LpSolutionOptimal else "feasible"
-        return chosen, status, float(problem.cost[chosen].sum())
+        return chosen, status, float(problem.cost[chosen].sum()) + problem.penalty(chosen)
     if sol == pulp.LpSolutionInfeasible or prob.status == pulp.LpStatusInfeasible:
         return None, "infeasible", None
     return None, "no_solution", None
@@ -285,7 +334,7 @@ def select_paths(problem: SelectionProblem, params: SelectParams) -> tuple[np.nd
     if chosen is None:
         chosen = greedy_selection(problem)
         status = f"fallback: {status}"
-        objective = float(problem.cost[chosen].sum())
+        objective = float(problem.cost[chosen].sum()) + problem.penalty(chosen)
     return chosen, status, float(objective)
 
 
@@ -322,14 +371,18 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     else:
         coverage = []
     types: dict[int, int] = {}
-    for kv in topo.data.get("key_vertices", []):
+    branches: dict[int, int] = {}
+    kvs = topo.data.get("key_vertices", [])
+    for kv in kvs:
         if int(kv.get("keypoint", -1)) >= 0:
             types[int(kv["keypoint"])] = int(kv["type"])
+    for b in topo.data.get("keypoint_branches", []):
+        branches[int(b["keypoint"])] = int(b["branches"])
     for p in paths:  # keypoints known only through the paths' end types
         for k, t in zip(p.get("end_keypoints", []), p.get("end_types", [])):
             if int(k) >= 0:
                 types.setdefault(int(k), int(t))
-    problem = build_problem(paths, coverage, energies, types, params)
+    problem = build_problem(paths, coverage, energies, types, params, branches)
     chosen, status, objective = select_paths(problem, params)
     ids = [int(p["id"]) for p, c in zip(paths, chosen) if c]
     return Artifact(data={

@@ -132,5 +132,6 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     return Artifact(
         arrays={"coverage": cov.astype(np.int32), "coverage_offsets": cov_off,
                 "steiner_segments": np.asarray(out["steiner_segments"], np.float64)},
-        data={"paths": out["paths"], "key_vertices": out["key_vertices"], "steiner_edges": out["steiner_edges"],
+        data={"paths": out["paths"], "key_vertices": out["key_vertices"],
+              "keypoint_branches": out["keypoint_branches"], "steiner_edges": out["steiner_edges"],
               "counts": out["counts"], "timings": out["timings"]})

@@ -23,6 +23,7 @@ class TopologyConfig:
     turn_min_cos: float
     junction_zone_px: float
     pass_through_junctions: bool
+    pass_through_endpoints: bool
     max_pass_through: int
     max_paths_per_pair: int
     max_enumeration_steps: int

@@ -68,6 +68,7 @@ class _Extractor:
     # -- pipeline -------------------------------------------------------------------------------
     def prepare(self, points, types, roots) -> None:
         conf, g = self.conf, self.g
+        self.graph_xy = g.xy.copy()                 # positions before key vertices move
         for v, k, t in find_key_vertices(g, self.comp_of, points, types, roots, self.mask,
                                          conf.keypoint_radius_px, conf.merge_graph_dist_px,
                                          conf.min_component_vertices):
@@ -100,7 +101,8 @@ class _Extractor:
             cov.add(eids, tree.ravel())
         self._loop_a(c)
         self._loop_b(c, csr, v0)
-        passable = {v for v, (k, t) in term.items() if t == 3} if conf.pass_through_junctions else set()
+        passable = {v for v, (k, t) in term.items()
+                    if (t == 3 and conf.pass_through_junctions) or (t == 1 and conf.pass_through_endpoints)}
         junctions = {v for v, (k, t) in term.items() if t == 3}
         res = enumerate_allowed_paths(g, self.sub_edge, c, term, passable, self.turn_ptr, self.turn_ok,
                                       self.arc_len, conf.max_pass_through, conf.max_paths_per_pair,
@@ -222,6 +224,34 @@ class _Extractor:
                 rejected[path_to_source(pred, f)] = True
                 self.stats["loop_b_rejected"] += 1
 
+    def keypoint_branches(self) -> dict[int, int]:
+        """Keypoint → number of covering-subgraph branches leaving it.
+
+        Per keypoint and component, the zone is every subgraph vertex within ``junction_zone_px``
+        (along the subgraph) of one of its key vertices; its branches are the subgraph edges with one
+        end in the zone, summed over components.  A Y whose key vertex sits a pixel down one branch
+        still has 3; an X (two components) 4; a junction keypoint that only a loop passes (its third
+        stroke was traced as another component with no key vertex) 2.  The selection caps the
+        required valence by it, instead of forcing a duplicate curve.
+        """
+        g, conf = self.g, self.conf
+        e = g.edges[self.sub_edge]
+        keep = self.sub_edge[g.arc_edge]
+        w = np.where(keep, self.arc_len, 0.0)
+        csr = sp.csr_matrix((w, g.indices, g.indptr), shape=(self.n, self.n))
+        csr.eliminate_zeros()
+        groups: dict[int, list[int]] = {}
+        for c, term in self.terminals.items():
+            for v, (k, t) in term.items():
+                if k >= 0:
+                    groups.setdefault(k, []).append(v)
+        out = {}
+        for k, vs in groups.items():
+            d = dijkstra(csr, directed=True, indices=np.array(vs), limit=conf.junction_zone_px, min_only=True)
+            inside = np.isfinite(d)
+            out[k] = int(np.count_nonzero(inside[e[:, 0]] != inside[e[:, 1]]))
+        return out
+
     def interest_distance(self) -> np.ndarray:
         """Graph distance over the covering subgraphs to the nearest junction or key vertex."""
         g = self.g
@@ -282,10 +312,15 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
         eids = ex.edge_ids(vs[:-1], vs[1:])
         px = np.unique(gather(ex.cov.pix_flat, ex.cov.pix_off, eids))
         coverage.append(ex.pixel_flat[px])
+        xy = g.xy[vs].copy()
+        # A stroke running past an endpoint keypoint keeps its own position there (only the stroke
+        # that ends is pinned to the keypoint).
+        passed = [i for i, v in enumerate(vs[1:-1], 1) if term.get(int(v), SYNTHETIC)[1] == 1]
+        xy[passed] = ex.graph_xy[vs[passed]]
         paths.append({
             "id": pid, "component": int(c),
             "vertices": g.orig[vs].tolist(),
-            "xy": g.xy[vs].tolist(),
+            "xy": xy.tolist(),
             "widths": g.width[vs].tolist(),
             "interest_dist": np.where(np.isfinite(dist[vs]), dist[vs], 0.0).tolist(),
             "end_types": [int(ends[0][1]), int(ends[1][1])],
@@ -296,6 +331,7 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
     key_vertices = [{"vertex": int(g.orig[v]), "keypoint": int(k), "type": int(t), "xy": g.xy[v].tolist(),
                      "component": int(c)}
                     for c in sorted(ex.terminals) for v, (k, t) in sorted(ex.terminals[c].items())]
+    branches = [{"keypoint": k, "branches": n} for k, n in sorted(ex.keypoint_branches().items())]
     st = g.edges[ex.steiner_edge]
     covered = np.zeros(len(ex.pixel_flat), bool)
     for c_px in coverage:
@@ -316,7 +352,7 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
         **ex.stats,
     }
     timings["total_s"] = time.perf_counter() - t0
-    return {"paths": paths, "key_vertices": key_vertices,
+    return {"paths": paths, "key_vertices": key_vertices, "keypoint_branches": branches,
             "steiner_edges": np.sort(g.orig[st], axis=1).tolist(),
             "steiner_segments": np.concatenate([g.xy[st[:, 0]], g.xy[st[:, 1]]], axis=1) if len(st)
             else np.zeros((0, 4)),

@@ -12,6 +12,14 @@ A junction keypoint (type 3) prefers, within each class, a vertex where the grap
 (valence ≥ 3) over a nearer valence-2 one: at a Y the graph's junction vertex is where the three
 strokes meet, and a key vertex one pixel down a branch would let paths between the other branches
 bypass it.
+
+An endpoint keypoint (type 1) gets a single key vertex (a stroke ends once), preferring a tip of the
+graph (valence 1) over a nearer valence-2 vertex.  On real drawings a stroke often ends *beside*
+another one (a tangential start, an end that almost touches): both classes then find vertices, and
+the nearest one usually lies on the passing stroke, so every path along that stroke was cut at the
+endpoint (on realvec_dev with ground-truth keypoints 15 % of the endpoints ended two or three chosen
+curves, scored as junctions).  When no tip is near, the key vertex may still lie on a passing chain;
+the allowed paths may then run through it (``pass_through_endpoints``).
 """
 
 from __future__ import annotations
@@ -83,12 +91,19 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
         else:
             cls = np.zeros(len(cand), np.int64)
         d = np.hypot(*(g.xy[cand] - p).T)
-        # A junction keypoint prefers a graph junction (valence ≥ 3) of the branch when there is one.
-        rank = (g.degree[cand] < 3) if t == 3 else np.zeros(len(cand), bool)
+        # A junction keypoint prefers a graph junction (valence ≥ 3) of the branch when there is one;
+        # an endpoint prefers a tip of the graph (valence 1).
+        if t == 3:
+            rank = g.degree[cand] < 3
+        elif t == 1:
+            rank = g.degree[cand] != 1
+        else:
+            rank = np.zeros(len(cand), bool)
         chosen: dict[tuple[int, int], int] = {}
         for idx in np.lexsort((d, rank)):
             v = int(cand[idx])
-            key = (int(comp_of[v]), int(cls[idx]))
+            # An endpoint is the end of one stroke: one key vertex in all (the best-ranked).
+            key = (0, 0) if t == 1 else (int(comp_of[v]), int(cls[idx]))
             if key in chosen:
                 continue
             if segment_in_band(mask, g.xy[v], p):

@@ -67,6 +67,35 @@ def test_junction_valence_counts_through_paths_twice():
     assert sorted(art.data["chosen"]) == [12, 13, 14, 15]
 
 
+def test_a_stroke_passing_an_endpoint_does_not_end_there():
+    # A line 0–1 with an endpoint keypoint 2 on it (a stroke starts beside the line), and that
+    # stroke 2–3.  The line's halves end at 2 and together cost less than the whole line passing it.
+    paths = [((0, 1), (2,)), ((0, 2), ()), ((2, 1), ()), ((2, 3), ())]
+    cov = [range(0, 40), range(0, 20), range(20, 40), range(40, 50)]
+    types = {0: 1, 1: 1, 2: 1, 3: 1}
+    art = _run(paths, cov, [40.0, 19.0, 19.0, 10.0], types)
+    assert sorted(art.data["chosen"]) == [10, 13]            # three ends at 2 would cost 2 × penalty
+    assert art.data["objective"] == pytest.approx(50.0)
+    art = _run(paths, cov, [40.0, 19.0, 19.0, 10.0], types, excess_penalty=0.0)
+    assert sorted(art.data["chosen"]) == [11, 12, 13]
+    # Passing by gives the endpoint no valence: the stroke that ends there is still required.
+    art = _run(paths[:1] + paths[3:], [range(0, 40), range(10, 20)], [40.0, 30.0], types)
+    assert sorted(art.data["chosen"]) == [10, 11]
+
+
+def test_corner_ends_beyond_two_are_charged_and_branches_cap_junctions():
+    p = select.SelectParams.from_cfg({**CFG, "cap_branches": True})
+    paths = [{"end_keypoints": [0, 1]}, {"end_keypoints": [1, 2]}, {"end_keypoints": [1, 3]},
+             {"end_keypoints": [4, 5], "through_keypoints": [6]}, {"end_keypoints": [7, 6]}]
+    types = {0: 1, 1: 5, 2: 1, 3: 1, 4: 1, 5: 1, 6: 3, 7: 1}
+    prob = select.build_problem(paths, [np.arange(3) + 3 * j for j in range(5)], np.ones(5), types, p,
+                                branches={6: 2})
+    assert prob.penalty(np.ones(5, bool)) == pytest.approx(p.excess_penalty)   # three ends at corner 1
+    assert prob.penalty(np.array([1, 1, 0, 1, 1], bool)) == 0.0
+    # Junction 6 has only two branches (a loop passes it): valence 2, not 3.
+    assert prob.valence_capped[list(prob.keypoints).index(6)] == 2
+
+
 def test_every_covered_pixel_stays_covered():
     rng = np.random.default_rng(0)
     cov = [np.unique(rng.integers(0, 60, 25)) for _ in range(12)]

@@ -115,6 +115,34 @@ def test_y_junction_turn_test_forbids_branch_to_branch():
     assert (1, 2) in _pairs(art)
 
 
+def test_endpoint_beside_another_stroke_gets_one_key_vertex_on_its_own_tip():
+    # A stem ending 2.5 px short of a bar (an end that almost touches): the bands merge, and the
+    # bar's centre line is within the keypoint radius of the stem's endpoint.
+    bar, stem = np.array([[8.0, 30.0], [56.0, 30.0]]), np.array([[32.0, 58.0], [32.0, 32.5]])
+    kps = [(8, 30, 1), (56, 30, 1), (32, 58, 1), (32, 32.5, 1)]
+    d = Drawing(render((64, 64), [bar, stem], 3.0), [bar, stem], 3.0, kps)
+    art, inputs = _run(d)
+    kv = [k for k in art.data["key_vertices"] if k["keypoint"] == 3]
+    assert len(kv) == 1
+    assert sorted(_pairs(art)) == [(0, 1), (2, 3)]          # the bar is not cut at the stem's end
+    assert _uncovered(art, inputs) == 0
+
+
+def test_paths_run_through_an_endpoint_on_a_passing_stroke_without_moving_to_it():
+    # A detector endpoint 1.5 px off a line's centre, with no tip near: its key vertex is on the line.
+    line = np.array([[8.0, 30.0], [56.0, 30.0]])
+    d = Drawing(render((64, 64), [line], 3.0), [line], 3.0, [(8, 30, 1), (56, 30, 1), (32, 31.5, 1)])
+    art, _ = _run(d)
+    whole = [p for p in art.data["paths"] if sorted(p["end_keypoints"]) == [0, 1]]
+    assert len(whole) == 1 and whole[0]["through_keypoints"] == [2]
+    assert np.abs(np.array(whole[0]["xy"])[:, 1] - 30.0).max() < 1e-6   # not pulled onto the keypoint
+    halves = [p for p in art.data["paths"] if 2 in p["end_keypoints"]]
+    assert len(halves) == 2 and all(np.allclose(p["xy"][p["end_keypoints"].index(2) * -1], [32, 31.5])
+                                    for p in halves)
+    art, _ = _run(d, pass_through_endpoints=False)
+    assert sorted(_pairs(art)) == [(0, 2), (1, 2)]
+
+
 def test_zigzag_splits_at_its_corners():
     d = synthetic.zigzag()      # ends 0, 1; corners 2..6 in order along the stroke
     art, _ = _run(d)
