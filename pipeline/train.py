@@ -38,7 +38,7 @@ from stages.keypoints.generator import GeneratorConfig, generate
 from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.labels import LabelRules
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
-from stages.keypoints.targets import gaussian_heatmaps, keypoint_loss
+from stages.keypoints.targets import class_cross_entropy, gaussian_heatmaps, keypoint_loss
 from stages.prep import narrow_band, normalise_contrast
 
 
@@ -157,6 +157,29 @@ def evaluate(model: KeypointNet, val, kcfg: dict, device: torch.device) -> Match
 # Training
 
 
+def _freeze(model: torch.nn.Module, train_only: list) -> list[torch.nn.Module]:
+    """Freeze every parameter outside the modules named in ``train_only`` (empty: train all).
+
+    Returns the frozen modules, whose BatchNorm layers must stay in eval mode.
+    """
+    if not train_only:
+        return []
+    frozen = []
+    for name, mod in model.named_modules():
+        trainable = any(name == r or name.startswith(r + ".") for r in train_only)
+        if not trainable and not list(mod.children()):
+            for p in mod.parameters(recurse=False):
+                p.requires_grad_(False)
+            frozen.append(mod)
+    return frozen
+
+
+def _train_mode(model: torch.nn.Module, frozen: list) -> None:
+    model.train()
+    for mod in frozen:
+        mod.eval()  # frozen BatchNorm keeps its running statistics
+
+
 def _worker_init(_wid: int) -> None:
     torch.set_num_threads(1)  # workers run numpy/numba only; keep them from oversubscribing cores
 
@@ -263,6 +286,10 @@ def train(cfg: dict) -> dict:
             raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}")
         sd = ck.get("state_dict", ck.get("model"))
         model.load_state_dict({k: v.float() for k, v in sd.items()})
+        for name, mod in model.named_modules():
+            if name and any(name == r or name.startswith(r + ".") for r in tc["init_reset"]):
+                if hasattr(mod, "reset_parameters"):
+                    mod.reset_parameters()
     history: list[dict] = []
     last = out / "last.pt"
     if tc["resume"] and last.is_file():
@@ -274,6 +301,10 @@ def train(cfg: dict) -> dict:
         start, history, elapsed0 = int(ck["step"]), ck.get("history", []), float(ck.get("elapsed_s", 0.0))
     (out / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
 
+    frozen = _freeze(model, tc["train_only"])
+    if frozen:
+        opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr0,
+                               weight_decay=float(tc["weight_decay"]))
     workers = tc["num_workers"]
     workers = max(1, (os.cpu_count() or 2) - 1) if workers == "auto" else int(workers)
     val = validation_set(cfg)
@@ -299,7 +330,7 @@ def train(cfg: dict) -> dict:
     done = False
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
-    model.train()
+    _train_mode(model, frozen)
     while not done and not stopped_early:
         crop = _crop_at(tc["crop_schedule"], progress())
         # One loader per crop size; its stream is seeded by the step it starts at (resumable).
@@ -313,9 +344,11 @@ def train(cfg: dict) -> dict:
             if device.type == "cuda":
                 x = x.contiguous(memory_format=torch.channels_last)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
-                final, inter = model(x)
+                final, inter, logits = model(x, return_logits=True)
             loss, parts = keypoint_loss(final.float(), [i.float() for i in inter], t, b,
                                         tuple(float(w) for w in tc["loss_weights"]), float(tc["fp_weight"]))
+            if float(tc["class_ce_weight"]) > 0:
+                loss = loss + float(tc["class_ce_weight"]) * class_cross_entropy(logits.float(), t, b)
             frac = progress()
             lr = 0.5 * lr0 * (1 + math.cos(math.pi * frac))  # cosine annealing (paper)
             for g in opt.param_groups:
@@ -334,6 +367,7 @@ def train(cfg: dict) -> dict:
                          f"{(step - start) / (time.time() - t0 - elapsed0):.1f} it/s")
             if step % int(tc["val"]["every"]) == 0 or done:
                 r = evaluate(model, val, cfg["keypoints"], device)
+                _train_mode(model, frozen)
                 rec = {"step": step, "loss": run_loss, "val_f1": r.f1, "val_precision": r.precision,
                        "val_recall": r.recall, "val_accuracy": r.accuracy, "elapsed_s": time.time() - t0}
                 history.append(rec)
@@ -355,7 +389,7 @@ def train(cfg: dict) -> dict:
               "seconds": time.time() - t0, "completed": done, "device": str(device),
               "device_name": torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu",
               "parameters": count_parameters(model), "history": history, "final_loss": run_loss,
-              "torch": torch.__version__}
+              "torch": str(torch.__version__)}
     model_cpu = KeypointNet(net_cfg)
     model_cpu.load_state_dict({k: v.float().cpu() for k, v in model.state_dict().items()})
     export_weights(model_cpu, out / "keypoints.pt", {k: v for k, v in record.items() if k != "history"}

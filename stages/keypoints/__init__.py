@@ -90,7 +90,8 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     Returns
     -------
     Artifact
-        ``heatmaps`` float32 (4, H, W) [detection, endpoint, junction, corner]; ``points`` float32
+        ``heatmaps`` float32 (4, H, W) in [0, 1] [detection, endpoint, junction, corner], zero off the
+        dilated band when ``restrict_to_band``; ``points`` float32
         (N, 2) (x, y); ``types`` int8 (N,); ``scores`` float32 (N,); data ``points`` and ``weights``.
     """
     torch.set_num_threads(int(cfg["torch_threads"]))
@@ -108,6 +109,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
                                            band, bool(cfg["subpixel"]))
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
+    heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points)})

@@ -3,7 +3,7 @@
 The authors trained on 927 k rasterised doodles (Quick, Draw!, Creative Birds) styled by Illustrator
 brushes. Those data are not ours to ship, so the shipped model is trained on drawings made here from
 random primitives — smooth open curves, polylines with sharp corners, closed loops, X-, T- and
-Y-junctions, strokes meeting end to end with or without a turn — with hand jitter, pressure-modulated
+Y-junctions, strokes meeting end to end with or without a turn, rounded bends — with hand jitter, pressure-modulated
 widths of 1–12 px, clean ink or pencil-like grain, blur, paper noise, random rotation and scale. The
 keypoints are derived from the final centre lines by :func:`stages.keypoints.labels.label_keypoints`
 (the rules of reference/metrics.md §4.2), never placed by hand, so the labels follow the same rules
@@ -209,7 +209,8 @@ def _polyline(rng, start, heading, n_seg, seg_len, sharp_prob) -> np.ndarray:
     for k in range(n_seg):
         L = rng.uniform(*seg_len)
         pts.append(pts[-1] + L * np.array([np.cos(ang), np.sin(ang)]))
-        turn = rng.uniform(60, 170) if rng.random() < sharp_prob else rng.uniform(0, 30)
+        # Sharp and mild turns overlap around the 45° corner threshold: the label rule decides.
+        turn = rng.uniform(30, 170) if rng.random() < sharp_prob else rng.uniform(0, 50)
         ang += np.radians(turn) * rng.choice([-1, 1])
     pts = np.array(pts)
     # Densify so that jitter bends segments.
@@ -218,6 +219,27 @@ def _polyline(rng, start, heading, n_seg, seg_len, sharp_prob) -> np.ndarray:
         m = max(int(np.hypot(*(b - a)) / 2.0), 1)
         out.extend(a + (b - a) * t for t in np.linspace(0, 1, m + 1)[1:])
     return np.array(out)
+
+
+def _bend(rng, start, heading, length, turn_deg, radius) -> np.ndarray:
+    """Two straight legs joined by a rounded bend (Gaussian smoothing of ``radius`` px)."""
+    pts = _polyline(rng, start, heading, 2, (length * 0.3, length * 0.6), 0.0)
+    a, c, b = pts[0], pts[len(pts) // 2], pts[-1]
+    d1 = np.array([np.cos(heading), np.sin(heading)])
+    ang = heading + np.radians(turn_deg) * rng.choice([-1, 1])
+    c = a + d1 * rng.uniform(0.3, 0.6) * length
+    b = c + np.array([np.cos(ang), np.sin(ang)]) * rng.uniform(0.3, 0.6) * length
+    out = []
+    for p, q in ((a, c), (c, b)):
+        m = max(int(np.hypot(*(q - p))), 1)
+        out.extend(p + (q - p) * t for t in np.linspace(0, 1, m + 1)[:-1])
+    out.append(b)
+    out = np.array(out)
+    if radius > 0.3:
+        sm = ndimage.gaussian_filter1d(out, radius, axis=0, mode="nearest")
+        sm[0], sm[-1] = out[0], out[-1]
+        out = sm
+    return out
 
 
 def _loop(rng, centre, radius, polygon: bool) -> np.ndarray:
@@ -266,8 +288,8 @@ def _compose(rng, cfg: GeneratorConfig, size: float, scale: float) -> list[np.nd
         return rng.uniform(0.15, 0.7) * size
 
     for _ in range(n):
-        kind = rng.choice(["curve", "polyline", "loop", "cross", "tee", "wye", "meet", "scribble"],
-                          p=[0.18, 0.14, 0.12, 0.12, 0.18, 0.08, 0.10, 0.08])
+        kind = rng.choice(["curve", "polyline", "loop", "cross", "tee", "wye", "meet", "scribble", "bend"],
+                          p=[0.15, 0.14, 0.10, 0.12, 0.17, 0.07, 0.10, 0.07, 0.08])
         h = rng.uniform(0, 2 * np.pi)
         if kind == "curve":
             strokes.append(_curve(rng, rnd_pt(), h, length(), rng.normal(0, 0.01) / scale,
@@ -275,6 +297,8 @@ def _compose(rng, cfg: GeneratorConfig, size: float, scale: float) -> list[np.nd
         elif kind == "polyline":
             strokes.append(_polyline(rng, rnd_pt(), h, rng.integers(2, 6), (0.06 * size, 0.25 * size),
                                      rng.uniform(0.3, 0.9)))
+        elif kind == "bend":
+            strokes.append(_bend(rng, rnd_pt(), h, length(), rng.uniform(15, 150), rng.uniform(0, 5)))
         elif kind == "loop":
             strokes.append(_loop(rng, rnd_pt(), rng.uniform(0.05, 0.25) * size, rng.random() < 0.35))
         elif kind == "cross":
@@ -307,8 +331,9 @@ def _compose(rng, cfg: GeneratorConfig, size: float, scale: float) -> list[np.nd
             c = rnd_pt()
             turn = rng.uniform(60, 160) if rng.random() < 0.6 else rng.uniform(0, 25)
             a = _curve(rng, c, h, length() / 2, 0, rng.uniform(0, 0.02) / scale)
-            b = _curve(rng, c, h + np.pi - np.radians(turn) * rng.choice([-1, 1]), length() / 2, 0,
-                       rng.uniform(0, 0.02) / scale)
+            # People rarely hit the other stroke's end exactly: a small gap or overlap.
+            b = _curve(rng, c + rng.normal(0, 0.8, 2), h + np.pi - np.radians(turn) * rng.choice([-1, 1]),
+                       length() / 2, 0, rng.uniform(0, 0.02) / scale)
             strokes += [a[::-1], b]
         else:  # scribble: a long wandering curve that may cross itself, or a tee fallback
             strokes.append(_curve(rng, rnd_pt(), h, length() * 1.5, rng.normal(0, 0.03) / scale,

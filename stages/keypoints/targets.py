@@ -10,6 +10,11 @@
   pixels so that the Gaussian tails just beyond a stroke end are supervised too.
 * Weights (paper): w1 = 1, w2 = w3 = w4 = 0.2, w5 = 0.4, w6 = 0.6; we take H5 = 0.25× and
   H6 = 0.5× (the paper lists them in that order).
+* :func:`class_cross_entropy` is an optional auxiliary term (weight ``class_ce_weight``, 0 = the
+  paper's loss alone): softmax cross-entropy of the three class logits at the pixels near a keypoint
+  (Ĥ1 > 0.5). Eq. 1 trains each class map towards a 0.625-quantile, i.e. a hard "is it this class"
+  decision per map; with short training the majority class (endpoint) fires everywhere and the
+  argmax is biased. The cross-entropy trains the one thing the argmax reads: which map is highest.
 """
 
 from __future__ import annotations
@@ -108,3 +113,31 @@ def keypoint_loss(final: torch.Tensor, intermediate: list[torch.Tensor], target:
     stacked = torch.stack(terms) * w
     names = ("h1", "h2", "h3", "h4", "h5", "h6")
     return stacked.sum(), {n: float(v) for n, v in zip(names, stacked.detach().cpu())}
+
+
+def class_cross_entropy(logits: torch.Tensor, target: torch.Tensor, band: torch.Tensor,
+                        near: float = 0.5) -> torch.Tensor:
+    """Cross-entropy of the class logits against the keypoint type, at pixels near keypoints.
+
+    Parameters
+    ----------
+    logits : torch.Tensor
+        (B, 3, H, W) pre-activation class maps (endpoint, junction, corner).
+    target : torch.Tensor
+        (B, 4, H, W) Gaussian targets; the type of a pixel is the argmax of channels 1..3.
+    band : torch.Tensor
+        (B, 1, H, W) loss mask.
+    near : float
+        Pixels with Ĥ1 above this count.
+
+    Returns
+    -------
+    torch.Tensor
+        Scalar (0 when no pixel qualifies).
+    """
+    sel = (target[:, 0] > near) & (band[:, 0] > 0)
+    if not bool(sel.any()):
+        return logits.sum() * 0.0
+    cls = target[:, 1:4].argmax(dim=1)
+    ce = F.cross_entropy(logits, cls, reduction="none")
+    return ce[sel].mean()

@@ -1,0 +1,285 @@
+"""Tests of the keypoint stage: labelling rules, targets, loss, NMS, training, shipped model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from stages import synthetic
+from stages.artifact import Artifact
+from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
+from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
+from stages.keypoints.generator import (GeneratorConfig, generate, read_quickdraw_ndjson, read_svg_strokes,
+                                        render_strokes)
+from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
+from stages.keypoints.labels import LabelRules, label_keypoints
+from stages.keypoints.network import KeypointNet, NetConfig
+from stages.keypoints.targets import asymmetric_l1, gaussian_heatmaps, keypoint_loss
+
+ROOT = Path(__file__).resolve().parents[2]
+SHARED = ROOT / ".." / "shared"
+CONF = ROOT / "conf"
+RULES = LabelRules()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    # Small tensors: a second OpenMP thread only adds synchronisation, and on a busy 2-core machine
+    # it makes every op wait for a descheduled thread (seen here: 30x slower).
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _cfg() -> dict:
+    return yaml.safe_load((CONF / "keypoints" / "default.yaml").read_text())
+
+
+def _labels(drawing):
+    return label_keypoints(drawing.strokes, [drawing.width] * len(drawing.strokes), RULES)
+
+
+# --- labelling rules (metrics.md §4.2) ---------------------------------------------------------
+
+
+def test_line_has_two_endpoints():
+    pts, types = _labels(synthetic.line())
+    assert sorted(types.tolist()) == [1, 1]
+    s = synthetic.line().strokes[0]
+    assert np.allclose(np.sort(pts[:, 0]), np.sort(s[:, 0]), atol=1e-6)
+
+
+def test_cross_has_one_junction_and_four_ends():
+    d = synthetic.cross()
+    pts, types = _labels(d)
+    assert (types == 3).sum() == 1 and (types == 1).sum() == 4
+    assert np.allclose(pts[types == 3][0], [32, 32], atol=0.6)
+
+
+def test_near_parallel_crossing_is_not_a_junction():
+    pts, types = _labels(synthetic.cross(angle1=10, angle2=30, length=50))
+    assert (types == 3).sum() == 0
+
+
+def test_vee_has_one_corner():
+    d = synthetic.vee()
+    pts, types = _labels(d)
+    assert (types == 5).sum() == 1 and (types == 1).sum() == 2
+    assert np.allclose(pts[types == 5][0], d.strokes[0][1], atol=1.0)
+
+
+def test_gentle_bend_is_not_a_corner():
+    pts, types = _labels(synthetic.vee(opening=150))  # turning 30°
+    assert (types == 5).sum() == 0
+
+
+def test_tee_end_on_a_stroke_is_a_junction():
+    d = synthetic.tee()
+    pts, types = _labels(d)
+    assert sorted(types.tolist()) == [1, 1, 1, 3]
+
+
+def test_wye_and_closed_loop():
+    _, types = _labels(synthetic.wye())
+    assert sorted(types.tolist()) == [1, 1, 1, 3]
+    _, types = _labels(synthetic.circle())
+    assert len(types) == 0
+
+
+def test_two_strokes_meeting_end_to_end():
+    a = np.array([[10.0, 40.0], [30.0, 40.0]])
+    bent = [a, np.array([[30.0, 40.0], [30.0, 15.0]])]
+    straight = [a, np.array([[30.0, 40.0], [55.0, 40.0]])]
+    _, t_bent = label_keypoints(bent, [3, 3], RULES)
+    _, t_straight = label_keypoints(straight, [3, 3], RULES)
+    assert sorted(t_bent.tolist()) == [1, 1, 5]
+    assert sorted(t_straight.tolist()) == [1, 1]
+
+
+def test_generator_is_deterministic_and_labelled():
+    cfg = GeneratorConfig()
+    a = generate(np.random.default_rng(3), cfg, RULES)
+    b = generate(np.random.default_rng(3), cfg, RULES)
+    assert np.array_equal(a.grey, b.grey) and np.array_equal(a.points, b.points)
+    assert a.grey.dtype == np.float32 and a.grey.min() >= 0 and a.grey.max() <= 1
+    assert len(a.points) == len(a.types) > 0
+    h, w = a.grey.shape
+    assert (a.points >= 0).all() and (a.points[:, 0] < w).all() and (a.points[:, 1] < h).all()
+
+
+def test_render_strokes_width():
+    ink = render_strokes((40, 40), [np.array([[5.0, 20.0], [35.0, 20.0]])], [np.array([4.0, 4.0])])
+    assert np.isclose(ink[:, 20].sum(), 4.0, atol=0.05)
+
+
+# --- targets and loss -------------------------------------------------------------------------
+
+
+def test_gaussian_heatmaps():
+    hm = gaussian_heatmaps((32, 40), np.array([[10.5, 8.5], [30.5, 20.5]]), np.array([1, 5]), 2.0)
+    assert hm.shape == (4, 32, 40)
+    assert hm[0, 8, 10] == pytest.approx(1.0) and hm[1, 8, 10] == pytest.approx(1.0)
+    assert hm[3, 20, 30] == pytest.approx(1.0) and hm[2].max() == 0
+    assert hm[0, 8, 12] == pytest.approx(np.exp(-4 / 8), rel=1e-5)
+
+
+def test_asymmetric_loss_penalises_misses_more():
+    t = torch.zeros(1)
+    assert float(asymmetric_l1(torch.ones(1) * 0.5, t)) == pytest.approx(0.3)
+    assert float(asymmetric_l1(-torch.ones(1) * 0.5, t)) == pytest.approx(0.5)
+
+
+def test_network_and_loss_shapes():
+    net = KeypointNet(NetConfig(stem_mid=4, level_channels=(4, 8, 8, 8), bottleneck_blocks=1))
+    x = torch.rand(2, 1, 32, 48)
+    final, inter = net(x)
+    assert final.shape == (2, 4, 32, 48)
+    assert [i.shape[-2:] for i in inter] == [(8, 12), (16, 24)]
+    target = torch.zeros(2, 4, 32, 48)
+    band = torch.zeros(2, 1, 32, 48)
+    band[..., 10:20, :] = 1
+    loss, parts = keypoint_loss(final, inter, target, band, (1, .2, .2, .2, .4, .6))
+    assert loss.ndim == 0 and set(parts) == {"h1", "h2", "h3", "h4", "h5", "h6"}
+    # Outside the band nothing counts.
+    final2 = final.detach().clone()
+    final2[..., :10, :] = 5.0
+    loss2, _ = keypoint_loss(final2, [i.detach() for i in inter], target, band, (1, .2, .2, .2, .4, .6))
+    assert float(loss2) == pytest.approx(float(loss.detach()), rel=1e-5)
+
+
+# --- inference ---------------------------------------------------------------------------------
+
+
+def test_nms_threshold_distance_and_types():
+    hm = np.zeros((4, 30, 30), np.float32)
+    hm[:, :, :] = 0.0
+    hm[0] = gaussian_heatmaps((30, 30), np.array([[5.5, 5.5], [8.5, 5.5]]), np.array([1, 1]), 1.0)[0]
+    hm[0, 5, 8] = 0.9  # a weaker peak 3 px from the first
+    hm[0, 20, 20] = 0.4  # an isolated peak below threshold
+    hm[2, 5, 5] = 0.8  # class: junction at the first peak
+    pts, types, scores = find_keypoints(hm, 0.5, 4, subpixel=False)
+    assert len(pts) == 1 and np.allclose(pts[0], [5.5, 5.5]) and types[0] == 3
+    pts, _, _ = find_keypoints(hm, 0.5, 2, subpixel=False)
+    assert len(pts) == 2
+    band = np.zeros((30, 30), bool)
+    assert len(find_keypoints(hm, 0.5, 2, band=band)[0]) == 0
+
+
+def test_subpixel_refinement():
+    hm = np.zeros((4, 20, 20), np.float32)
+    hm[0] = gaussian_heatmaps((20, 20), np.array([[10.2, 7.8]]), np.array([1]), 2.0)[0]
+    pts, _, _ = find_keypoints(hm, 0.5, 1, subpixel=True)
+    assert np.allclose(pts[0], [10.2, 7.8], atol=0.1)
+
+
+def test_network_input_normalisation():
+    grey = np.ones((20, 20), np.float32)
+    grey[5:8, :] = 0.4
+    x = network_input(grey, 0.5)
+    assert x.dtype == np.float32 and x.max() == pytest.approx(1.0) and x[0, 0] == 0.0
+
+
+def test_tiles_blend_without_seams():
+    torch.manual_seed(0)
+    net = KeypointNet(NetConfig(stem_mid=4, level_channels=(4, 8, 8, 8), bottleneck_blocks=1)).eval()
+    x = network_input(synthetic.tee(size=100).grey, 0.5)
+    whole = predict_heatmaps(net, x, 4096, 64)
+    tiled = predict_heatmaps(net, x, 64, 32)
+    assert whole.shape == tiled.shape == (4,) + x.shape
+    assert np.abs(whole - tiled).max() < 0.05
+
+
+def test_run_artifact_contract():
+    d = synthetic.cross(size=48)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    a = run(_cfg(), prep=prep)
+    assert a["heatmaps"].shape == (4, 48, 48) and a["heatmaps"].dtype == np.float32
+    assert a["points"].dtype == np.float32 and a["points"].shape[1:] == (2,)
+    assert a["types"].dtype == np.int8 and a["scores"].dtype == np.float32
+    assert len(a.data["points"]) == len(a["points"])
+    assert set(a["types"].tolist()) <= {1, 3, 5}
+    assert STAGE_VERSION.startswith("1+") and a.data["weights"]
+    assert torch.get_num_threads() == 1
+    img = render_keypoints(d.grey, a["heatmaps"], a["points"], a["types"])
+    assert img.shape == (48, 48, 3) and img.dtype == np.uint8
+
+
+def test_weights_load_on_cpu():
+    model, name = load_model("packaged")
+    assert next(model.parameters()).device.type == "cpu"
+    if PACKAGED_WEIGHTS.is_file():
+        assert name.startswith("keypoints.pt@") and name.split("@")[1] in STAGE_VERSION
+
+
+@pytest.mark.skipif(not PACKAGED_WEIGHTS.is_file(), reason="no shipped weights yet")
+def test_shipped_model_finds_both_ends_of_a_stroke():
+    d = synthetic.line(size=96, angle=23.0, length=60.0, width=3.0)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    a = run(_cfg(), prep=prep)
+    gt = np.array([k[:2] for k in d.keypoints])
+    m = match_keypoints(gt, np.array([1, 1]), a["points"], a["types"], 5.0)
+    assert m.tp == 2 and m.correct_type == 2
+
+
+# --- metrics -----------------------------------------------------------------------------------
+
+
+def test_authors_f1_and_matching():
+    gt = np.array([[10.0, 10.0], [50.0, 50.0]])
+    assert f1_authors(gt, gt, 100) == 1.0
+    assert f1_authors(gt, np.zeros((0, 2)), 100) == 0.0
+    assert f1_authors(np.zeros((0, 2)), gt, 100) == 0.5
+    # One prediction between two close GT points satisfies both in the authors' F1 but not 1-to-1.
+    gt2 = np.array([[10.0, 10.0], [11.0, 10.0]])
+    assert f1_authors(gt2, np.array([[10.5, 10.0]]), 100) == 1.0
+    m = match_keypoints(gt2, np.array([1, 3]), np.array([[10.5, 10.0]]), np.array([3]), 5)
+    assert (m.tp, m.fp, m.fn) == (1, 0, 1)
+    assert read_pts("2 \n3.0 4.0 5.0\n1 2 1\n")[0].tolist() == [[4.5, 3.5], [2.5, 1.5]]
+
+
+# --- training ----------------------------------------------------------------------------------
+
+
+def test_training_smoke_loss_decreases(tmp_path):
+    from pipeline.train import compose_plain, train
+
+    cfg = compose_plain(CONF, [
+        f"train.out_dir={tmp_path}", "train.steps=12", "train.batch_size=4", "train.num_workers=0",
+        "train.crop_schedule=[[0,48]]", "train.val.count=1", "train.val.every=1000",
+        "train.checkpoint_every=6", "train.log_every=1000", "train.lr=0.003", "train.crops_per_image=4",
+        "train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
+        "train.network.bottleneck_blocks=1"])
+    cfg["train"]["seed"] = 1
+    torch.manual_seed(0)
+    rec = train(cfg)
+    assert rec["steps"] == 12 and (tmp_path / "keypoints.pt").is_file() and (tmp_path / "last.pt").is_file()
+    model, _ = load_model(tmp_path / "keypoints.pt")
+    assert isinstance(model, KeypointNet)
+    curve = rec["loss_curve"]
+    assert len(curve) == 12 and np.mean(curve[-3:]) < np.mean(curve[:3])
+
+
+# --- readers (need ../shared) ------------------------------------------------------------------
+
+
+@pytest.mark.shared
+def test_readers_on_shared_vector_data():
+    vec = SHARED / "data" / "vector"
+    if not vec.is_dir():
+        pytest.skip("../shared absent")
+    drawings = read_quickdraw_ndjson(vec / "quickdraw" / "cat.ndjson", limit=2)
+    assert len(drawings) == 2 and all(s.shape[1] == 2 for s in drawings[0])
+    strokes, size = read_svg_strokes(vec / "creative" / "test_50.svg")
+    assert len(strokes) > 3 and size[0] > 0
+    allp = np.concatenate(strokes)
+    assert allp.min() > -1 and allp.max() < max(size) + 1
+    angel = sorted((vec / "tu_berlin" / "angel").glob("*.svg"))[0]
+    strokes, size = read_svg_strokes(angel)
+    allp = np.concatenate(strokes)
+    assert len(strokes) > 1 and allp.min() > -5 and allp.max() < max(size) + 5
