@@ -400,6 +400,156 @@ def train(cfg: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
+# Class branch on a frozen detector
+
+
+def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: int
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Frozen decoder features around the keypoints of ``count`` generated drawings.
+
+    The trunk (everything that feeds H1) runs once per drawing; a ``patch``-pixel square of its
+    full-resolution features is cut around every ground-truth keypoint, with the class of each of its
+    pixels (argmax of Ĥ2..Ĥ4) and whether the pixel counts for the loss (Ĥ1 > 0.5, in the band).
+
+    Returns
+    -------
+    feats : torch.Tensor
+        float16 (N, C, patch, patch).
+    cls : torch.Tensor
+        int64 (N, patch, patch) class index 0..2.
+    near : torch.Tensor
+        bool (N, patch, patch).
+    """
+    rng = np.random.default_rng(seed)
+    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
+    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    r = patch // 2
+    feats, classes, nears = [], [], []
+    model.eval()
+    with torch.inference_mode():
+        for _ in range(count):
+            s = generate(rng, gcfg, rules)
+            if not len(s.points):
+                continue
+            x, t, b = prepare_sample(s, cfg)
+            m = model.multiple
+            h, w = x.shape
+            xp = np.pad(x, ((r, r + m - (h + 2 * r) % m), (r, r + m - (w + 2 * r) % m)))
+            f = model.trunk(torch.from_numpy(xp)[None, None])[0][0]
+            tp = np.pad(t, ((0, 0), (r, r), (r, r)))
+            bp = np.pad(b, ((r, r), (r, r)))
+            for px, py in s.points:
+                i, j = int(py) + r, int(px) + r
+                feats.append(f[:, i - r:i + r + 1, j - r:j + r + 1].half())
+                tt = tp[:, i - r:i + r + 1, j - r:j + r + 1]
+                classes.append(torch.from_numpy(tt[1:4].argmax(0)))
+                nears.append(torch.from_numpy((tt[0] > 0.5) & (bp[i - r:i + r + 1, j - r:j + r + 1] > 0)))
+    return torch.stack(feats), torch.stack(classes).long(), torch.stack(nears)
+
+
+def train_class_branch(cfg: dict) -> dict:
+    """Re-train only the class branch of a trained detector (``train.class_branch`` settings).
+
+    The detector (trunk and H1..H6) is loaded from ``train.init_weights`` and frozen, so detection is
+    unchanged bit for bit; the class branch (``train.network.class_width`` / ``class_dilations``) is
+    trained from scratch with a class-weighted softmax cross-entropy on cached trunk features around
+    the keypoints of generated drawings (:func:`class_patches`). Only the centre of each patch, where
+    the branch's receptive field lies inside the patch, is supervised. The class maps are then tanh
+    of the logits, so the argmax read by the stage is the argmax of the logits.
+
+    Returns
+    -------
+    dict
+        The record (counts, losses, validation accuracy on a separate set of drawings).
+    """
+    tc, cb = cfg["train"], cfg["train"]["class_branch"]
+    torch.set_num_threads(int(tc["cpu_threads"]))
+    torch.manual_seed(int(tc["seed"]))
+    out = Path(tc["out_dir"])
+    out.mkdir(parents=True, exist_ok=True)
+    ck = torch.load(tc["init_weights"], map_location="cpu", weights_only=False)
+    net_cfg = NetConfig.from_dict(tc["network"])
+    old = NetConfig.from_dict(ck["network"])
+    if (old.stem_mid, old.level_channels, old.bottleneck_blocks) != (net_cfg.stem_mid, net_cfg.level_channels,
+                                                                     net_cfg.bottleneck_blocks):
+        raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}")
+    model = KeypointNet(net_cfg)
+    sd = {k: v.float() for k, v in ck.get("state_dict", ck.get("model")).items() if not k.startswith("class_head.")}
+    missing, _ = model.load_state_dict(sd, strict=False)
+    if any(not k.startswith("class_head.") for k in missing):
+        raise SystemExit(f"init_weights lacks {missing}")
+    t0 = time.time()
+    patch, margin = int(cb["patch"]), int(cb["supervised_margin"])
+    feats, cls, near = class_patches(model, cfg, int(cb["drawings"]), int(cb["seed"]), patch)
+    vfeats, vcls, vnear = class_patches(model, cfg, int(cb["val_drawings"]), int(cb["val_seed"]), patch)
+    t_data = time.time() - t0
+    # Only pixels at least `margin` from the patch border: there the branch sees real features, not padding.
+    inner = torch.zeros(patch, patch, dtype=torch.bool)
+    inner[margin:patch - margin, margin:patch - margin] = True
+    near &= inner
+    vnear &= inner
+    counts = torch.bincount(cls[near], minlength=3).double()
+    # Class weights ∝ frequency^-power (0 = plain cross-entropy, 1 = balanced classes).
+    cw = (counts.sum() / counts.clamp_min(1)) ** float(cb["balance_power"])
+    cw = (cw / cw.mean()).float()
+    head = model.class_head
+    for mod in head.modules():
+        if hasattr(mod, "reset_parameters"):
+            mod.reset_parameters()
+    opt = torch.optim.Adam(head.parameters(), lr=float(cb["lr"]))
+    n, bs, epochs = len(feats), int(cb["batch_size"]), int(cb["epochs"])
+    total = epochs * math.ceil(n / bs)
+    step, history = 0, []
+
+    def centre_accuracy(fe, cl) -> float:
+        head.eval()
+        with torch.inference_mode():
+            c = patch // 2
+            pred = torch.cat([head(fe[k:k + 512].float())[:, :, c, c].argmax(1) for k in range(0, len(fe), 512)])
+        head.train()
+        return float((pred == cl[:, c, c]).float().mean())
+
+    head.train()
+    for ep in range(epochs):
+        perm = torch.randperm(n)
+        tot = 0.0
+        for k in range(0, n, bs):
+            idx = perm[k:k + bs]
+            fe = feats[idx].float()
+            if bool(torch.randint(0, 2, ())):  # flips and quarter turns, as in the detector's training
+                fe, c_, nr = torch.flip(fe, (-1,)), torch.flip(cls[idx], (-1,)), torch.flip(near[idx], (-1,))
+            else:
+                c_, nr = cls[idx], near[idx]
+            q = int(torch.randint(0, 4, ()))
+            fe, c_, nr = torch.rot90(fe, q, (-2, -1)), torch.rot90(c_, q, (-2, -1)), torch.rot90(nr, q, (-2, -1))
+            logits = head(fe)
+            ce = F.cross_entropy(logits, c_, weight=cw, reduction="none")
+            loss = ce[nr].mean()
+            for g in opt.param_groups:
+                g["lr"] = 0.5 * float(cb["lr"]) * (1 + math.cos(math.pi * step / total))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            tot += float(loss.detach()) * len(idx)
+        rec = {"epoch": ep + 1, "loss": tot / n, "val_centre_accuracy": centre_accuracy(vfeats, vcls),
+               "elapsed_s": time.time() - t0}
+        history.append(rec)
+        print(f"epoch {ep + 1} loss {rec['loss']:.4f} val centre acc {rec['val_centre_accuracy']:.3f} "
+              f"({rec['elapsed_s']:.0f} s)", flush=True)
+    val = validation_set(cfg)
+    r = evaluate(model, val, cfg["keypoints"], torch.device("cpu"))
+    record = {"mode": "class_branch", "keypoints": n, "class_counts": counts.tolist(), "class_weights": cw.tolist(),
+              "data_seconds": t_data, "seconds": time.time() - t0, "history": history,
+              "val_f1": r.f1, "val_accuracy": r.accuracy, "parameters_class_branch": count_parameters(head),
+              "init_weights": str(tc["init_weights"]), "torch": str(torch.__version__)}
+    print(f"generated validation ({len(val)} drawings): F1 {r.f1:.3f} class acc {r.accuracy:.3f}", flush=True)
+    export_weights(model, out / "keypoints.pt", record | {"config": tc})
+    (out / "record.json").write_text(json.dumps(record, indent=2))
+    return record
+
+
+# ------------------------------------------------------------------------------------------------
 # Entry points
 
 
@@ -427,6 +577,9 @@ def main() -> None:
     """``polyvec-train`` (Hydra). ``--plain CONF_DIR key=value…`` composes without Hydra."""
     if len(sys.argv) > 2 and sys.argv[1] == "--plain":
         train(compose_plain(sys.argv[2], sys.argv[3:]))
+        return
+    if len(sys.argv) > 2 and sys.argv[1] == "--class-branch":
+        train_class_branch(compose_plain(sys.argv[2], sys.argv[3:]))
         return
     import hydra
     from omegaconf import OmegaConf

@@ -46,12 +46,19 @@ class NetConfig:
         Residual blocks at the coarsest level (the paper uses 3, with twice the channels inside).
     negative_slope : float
         LeakyReLU slope.
+    class_width : int
+        Channels of the class branch (0 = ``level_channels[0]``, the first shipped model's head).
+    class_dilations : tuple of int
+        Dilation of each 3×3 conv of the class branch; ``(1,)`` is the first shipped model's head.
+        Checkpoints written before these two keys existed load with (0, (1,)).
     """
 
     stem_mid: int = 8
     level_channels: tuple[int, ...] = (16, 32, 48, 64)
     bottleneck_blocks: int = 3
     negative_slope: float = 0.1
+    class_width: int = 0
+    class_dilations: tuple[int, ...] = (1,)
 
     @property
     def depth(self) -> int:
@@ -59,12 +66,17 @@ class NetConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetConfig":
+        # The two class-branch keys are absent from checkpoints of the first shipped model; their
+        # legacy values rebuild exactly that model's head.
         return cls(stem_mid=int(d["stem_mid"]), level_channels=tuple(int(c) for c in d["level_channels"]),
-                   bottleneck_blocks=int(d["bottleneck_blocks"]), negative_slope=float(d["negative_slope"]))
+                   bottleneck_blocks=int(d["bottleneck_blocks"]), negative_slope=float(d["negative_slope"]),
+                   class_width=int(d.get("class_width", 0)),
+                   class_dilations=tuple(int(k) for k in d.get("class_dilations", (1,))))
 
     def to_dict(self) -> dict:
         return {"stem_mid": self.stem_mid, "level_channels": list(self.level_channels),
-                "bottleneck_blocks": self.bottleneck_blocks, "negative_slope": self.negative_slope}
+                "bottleneck_blocks": self.bottleneck_blocks, "negative_slope": self.negative_slope,
+                "class_width": self.class_width, "class_dilations": list(self.class_dilations)}
 
 
 def _cbr(cin: int, cout: int, k: int, slope: float, dilation: int = 1, act: bool = True) -> nn.Sequential:
@@ -159,14 +171,20 @@ class KeypointNet(nn.Module):
         self.up = nn.ModuleList([_Up(ch[k + 1], ch[k], s) for k in range(cfg.depth)])
         # Side heads: one per up level (index k = resolution 1/2**k); k = 0 is H1.
         self.side = nn.ModuleList([nn.Conv2d(ch[k], 1, 3, padding=1) for k in range(min(cfg.depth, 3))])
-        self.class_head = nn.Sequential(_cbr(ch[0], ch[0], 3, s), nn.Conv2d(ch[0], 3, 1))
+        cw = cfg.class_width or ch[0]
+        branch: list[nn.Module] = []
+        for k, dil in enumerate(cfg.class_dilations):
+            branch.append(_cbr(ch[0] if k == 0 else cw, cw, 3, s, dilation=int(dil)))
+        branch.append(nn.Conv2d(cw, 3, 1))
+        self.class_head = nn.Sequential(*branch)
 
     @property
     def multiple(self) -> int:
         """Input sides must be multiples of this."""
         return 2 ** self.cfg.depth
 
-    def forward(self, x: torch.Tensor, return_logits: bool = False):
+    def trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Full-resolution decoder features (input of H1 and the class branch) and H5, H6."""
         f = self.stem(x)
         skips = []
         for k in range(self.cfg.depth):
@@ -178,6 +196,10 @@ class KeypointNet(nn.Module):
             f = self.up[k](f, skips[k])
             if 0 < k < len(self.side):  # the paper's H5 (0.25×) and H6 (0.5×)
                 intermediate.append(torch.tanh(self.side[k](f)))
+        return f, intermediate
+
+    def forward(self, x: torch.Tensor, return_logits: bool = False):
+        f, intermediate = self.trunk(x)
         h1 = torch.tanh(self.side[0](f))
         logits = self.class_head(f)
         out = torch.cat([h1, torch.tanh(logits)], dim=1)

@@ -265,6 +265,47 @@ def test_training_smoke_loss_decreases(tmp_path):
     assert len(curve) == 12 and np.mean(curve[-3:]) < np.mean(curve[:3])
 
 
+def test_legacy_network_config_rebuilds_the_first_head():
+    # Checkpoints without the class-branch keys must load with the first model's head.
+    legacy = {"stem_mid": 4, "level_channels": [4, 8, 8, 8], "bottleneck_blocks": 1, "negative_slope": 0.1}
+    cfg = NetConfig.from_dict(legacy)
+    assert (cfg.class_width, cfg.class_dilations) == (0, (1,))
+    names = [k for k in KeypointNet(cfg).state_dict() if k.startswith("class_head.")]
+    assert {k.split(".")[1] for k in names} == {"0", "1"}
+    wide = NetConfig.from_dict(legacy | {"class_width": 6, "class_dilations": [1, 2]})
+    assert NetConfig.from_dict(wide.to_dict()) == wide
+    out, _ = KeypointNet(wide)(torch.zeros(1, 1, 32, 32))
+    assert out.shape == (1, 4, 32, 32)
+
+
+def test_class_branch_training_keeps_detection(tmp_path):
+    from pipeline.train import compose_plain, train, train_class_branch
+
+    small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
+             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.num_workers=0"]
+    base = compose_plain(CONF, small + [
+        f"train.out_dir={tmp_path / 'base'}", "train.steps=2", "train.batch_size=2",
+        "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000",
+        "train.network.class_width=0", "train.network.class_dilations=[1]"])
+    train(base)
+    cfg = compose_plain(CONF, small + [
+        f"train.out_dir={tmp_path / 'cb'}", f"train.init_weights={tmp_path / 'base' / 'keypoints.pt'}",
+        "train.network.class_width=6", "train.network.class_dilations=[1,2]",
+        "train.class_branch.drawings=3", "train.class_branch.val_drawings=1", "train.class_branch.epochs=2",
+        "train.class_branch.patch=13", "train.class_branch.supervised_margin=3"])
+    rec = train_class_branch(cfg)
+    assert rec["keypoints"] > 0 and len(rec["history"]) == 2
+    old, _ = load_model(tmp_path / "base" / "keypoints.pt")
+    new, _ = load_model(tmp_path / "cb" / "keypoints.pt")
+    assert new.cfg.class_dilations == (1, 2)
+    x = torch.from_numpy(network_input(synthetic.tee(size=64).grey, 0.5))[None, None]
+    with torch.inference_mode():
+        h_old, h_new = old(x)[0], new(x)[0]
+    # The detector is frozen: H1 is unchanged, only the class maps differ.
+    assert torch.equal(h_old[:, 0], h_new[:, 0])
+    assert not torch.equal(h_old[:, 1:], h_new[:, 1:])
+
+
 # --- readers (need ../shared) ------------------------------------------------------------------
 
 
