@@ -18,6 +18,11 @@ config + training record) is exported: copy it to stages/keypoints/weights/ to s
 
 The training loop needs only torch, numpy, scipy, scikit-image and numba (and rich if present), so
 it also runs where Hydra is not installed: ``python -m pipeline.train --plain conf_dir [key=value…]``.
+
+``python -m pipeline.train --class-branch conf_dir train.init_weights=… [key=value…]`` re-trains only
+the class branch on a frozen detector (:func:`train_class_branch`, settings ``train.class_branch``):
+detection stays exactly as it was, and the run takes minutes on one CPU thread because the trunk runs
+once per drawing and the branch trains on cached feature patches around the keypoints.
 """
 
 from __future__ import annotations

@@ -12,9 +12,13 @@ Choices made on purpose
   drawing in 2 s; the receptive field comes from the coarse levels, where channels are cheap.
 * **LeakyReLU everywhere**, as Appendix B says. The authors' code uses sin (SIREN) activations in
   the 1/8 bottleneck; the paper does not mention them and they gain nothing measurable here.
-* **Class heads** share one small full-resolution block ending in a 3-channel sigmoid, instead of
+* **Class heads** share one full-resolution class branch on the decoder features (``class_width``
+  channels, one 3×3 conv per entry of ``class_dilations``, then a 1×1 conv to three maps), instead of
   three separate ResNeXt modules: the class maps are only read at detected peaks (argmax), so a light
-  head suffices and keeps inference fast.
+  branch keeps inference fast. The first shipped model used a single 3×3 conv on 8 channels
+  (``class_width 0, class_dilations [1]``); it never let the corner map win. Dilations 1, 2, 4 give the
+  branch ±7 px of context, enough to see both arms of a corner, for a few thousand parameters.
+  The branch can be re-trained alone on a frozen detector (``python -m pipeline.train --class-branch``).
 * All heads end in ``tanh``. The authors end H1 in ``tanh`` but the class maps in ``sigmoid``; with
   the masked L1-like loss of Eq. 1, whose targets are 0 on almost every band pixel, a sigmoid head is
   driven into saturation at 0 where its gradient vanishes: our first model's class maps stayed ≈ 0
