@@ -40,15 +40,11 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError
 from pipeline.runner import BatchResult, TaskResult, plan, run_batch
 from pipeline.store import ArtifactStore
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp"}
 KEYPOINT_CLASSES = {"endpoints": 1, "junctions": 3, "corners": 5}
-
-
-class UsageError(Exception):
-    """A problem with the command line, reported as one line."""
 
 
 @dataclass
@@ -570,30 +566,17 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     return rows, tables
 
 
-_EXIT = {"code": 0}
+_EXIT = ExitCode("polyvec-bench")
 
 
 @hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")
 def _app(cfg: DictConfig) -> None:
-    try:
-        rows, _ = run_bench(cfg)
-    except UsageError as exc:
-        print(f"polyvec-bench: error: {exc}", file=sys.stderr)
-        _EXIT["code"] = 2
-        return
-    if any(r.get("error") for r in rows):
-        _EXIT["code"] = 1
+    _EXIT.job(lambda c: any(r.get("error") for r in run_bench(c)[0]), cfg)
 
 
 def main() -> None:
     """Console entry point; exits 1 when any case failed, 2 on a usage error."""
-    try:
-        _app()
-    finally:
-        from pipeline.runner import close_client
-
-        close_client()
-    sys.exit(_EXIT["code"])
+    _EXIT.main(_app)
 
 
 if __name__ == "__main__":

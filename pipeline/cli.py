@@ -157,30 +157,46 @@ def run(cfg: DictConfig) -> BatchResult:
     return batch
 
 
-_EXIT = {"code": 0}
+class ExitCode:
+    """Exit status a Hydra app records across (multirun) jobs: 1 = some image failed, 2 = usage error."""
+
+    def __init__(self, prog: str):
+        self.prog = prog
+        self.code = 0
+
+    def job(self, fn, cfg: DictConfig) -> None:
+        """Run one job; ``fn(cfg)`` returns True when something failed."""
+        try:
+            failed = fn(cfg)
+        except UsageError as exc:
+            print(f"{self.prog}: error: {exc}", file=sys.stderr)
+            self.code = 2
+            return
+        if failed and self.code == 0:
+            self.code = 1
+
+    def main(self, app) -> None:
+        """Run the Hydra app, shut the dask client down and exit with the recorded status."""
+        try:
+            app()
+        finally:
+            from pipeline.runner import close_client
+
+            close_client()
+        sys.exit(self.code)
+
+
+_EXIT = ExitCode("polyvec")
 
 
 @hydra.main(version_base=None, config_path="pkg://conf", config_name="config")
 def _app(cfg: DictConfig) -> None:
-    try:
-        batch = run(cfg)
-    except UsageError as exc:
-        print(f"polyvec: error: {exc}", file=sys.stderr)
-        _EXIT["code"] = 2
-        return
-    if batch.failed_images:
-        _EXIT["code"] = 1
+    _EXIT.job(lambda c: bool(run(c).failed_images), cfg)
 
 
 def main() -> None:
-    """Console entry point; exits non-zero when any image failed."""
-    try:
-        _app()
-    finally:
-        from pipeline.runner import close_client
-
-        close_client()
-    sys.exit(_EXIT["code"])
+    """Console entry point; exits 1 when any image failed, 2 on a usage error."""
+    _EXIT.main(_app)
 
 
 if __name__ == "__main__":
