@@ -301,9 +301,7 @@ def _run_dask(pending, store_url, batch, report, client) -> None:
 
     futures = {}
     for i, tasks in enumerate(pending):
-        image = tasks[0].image
         per_future: dict[str, Any] = {}
-        per = batch.results[image]
         for t in tasks:
             deps = [per_future[s] for s in BY_NAME[t.stage].inputs if s in per_future]
             fut = client.submit(execute, t, store_url, *deps, key=f"{t.stage}-{i}-{t.key[:16]}", pure=False,
