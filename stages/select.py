@@ -68,6 +68,7 @@ class SelectParams:
     valence: dict = field(default_factory=dict)
     max_ends: dict = field(default_factory=dict)
     excess_penalty: float = 0.0
+    curve_cost: float = 0.0
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "SelectParams":
@@ -80,11 +81,12 @@ class SelectParams:
                     cap_branches=bool(cfg["cap_branches"]),
                     valence={t: int(v[name]) for t, name in _TYPE_NAMES.items()},
                     max_ends={t: int(m[name]) for t, name in _TYPE_NAMES.items() if m.get(name) is not None},
-                    excess_penalty=float(cfg["excess_penalty"]))
+                    excess_penalty=float(cfg["excess_penalty"]), curve_cost=float(cfg["curve_cost"]))
         except KeyError as e:
             raise InputError(f"select config is missing key {e}") from None
-        if p.time_limit <= 0 or p.threads < 1 or p.gap_rel < 0 or p.excess_penalty < 0:
-            raise InputError("select config: need time_limit > 0, threads ≥ 1, gap_rel ≥ 0, excess_penalty ≥ 0")
+        if p.time_limit <= 0 or p.threads < 1 or p.gap_rel < 0 or p.excess_penalty < 0 or p.curve_cost < 0:
+            raise InputError("select config: need time_limit > 0, threads ≥ 1, gap_rel ≥ 0, excess_penalty ≥ 0, "
+                             "curve_cost ≥ 0")
         return p
 
 
@@ -382,7 +384,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         for k, t in zip(p.get("end_keypoints", []), p.get("end_types", [])):
             if int(k) >= 0:
                 types.setdefault(int(k), int(t))
-    problem = build_problem(paths, coverage, energies, types, params, branches)
+    problem = build_problem(paths, coverage, energies + params.curve_cost, types, params, branches)
     chosen, status, objective = select_paths(problem, params)
     ids = [int(p["id"]) for p, c in zip(paths, chosen) if c]
     return Artifact(data={

@@ -19,6 +19,7 @@ class TopologyConfig:
     min_new_pixels: int
     robust_far_px: float
     robust_min_new_vertices: int
+    robust_min_new_pixels: int
     turn_probe_px: float
     turn_min_cos: float
     junction_zone_px: float

@@ -160,11 +160,11 @@ class _Extractor:
                 return walk
         return None
 
-    def _accept(self, walk, uncovered: np.ndarray, need: int) -> tuple[bool, np.ndarray, np.ndarray]:
+    def _accept(self, walk, uncovered: np.ndarray, need: int, need_pixels: int) -> tuple[bool, np.ndarray, np.ndarray]:
         verts, arcs = walk
         distinct = np.unique(verts[uncovered[verts]])
         eids = np.unique(self.g.arc_edge[arcs])
-        ok = len(distinct) >= need and self.cov.new_pixels(eids) >= self.conf.min_new_pixels
+        ok = len(distinct) >= need and self.cov.new_pixels(eids) >= need_pixels
         return ok, distinct, eids
 
     def _loop_a(self, c: int) -> None:
@@ -180,7 +180,7 @@ class _Extractor:
             walk = self._walk(c, unc, self.is_term, need)
             if walk is None:
                 return
-            ok, distinct, eids = self._accept(walk, unc, need)
+            ok, distinct, eids = self._accept(walk, unc, need, conf.min_new_pixels)
             if ok:
                 self.sub_edge[eids] = True
                 cov.add(eids, walk[0])
@@ -214,7 +214,7 @@ class _Extractor:
             walk = self._walk(c, unc, source, conf.robust_min_new_vertices)
             ok = False
             if walk is not None:
-                ok, _, eids = self._accept(walk, unc, conf.robust_min_new_vertices)
+                ok, _, eids = self._accept(walk, unc, conf.robust_min_new_vertices, conf.robust_min_new_pixels)
             if ok:
                 self.add_terminal(c, f + v0)
                 self.sub_edge[eids] = True

@@ -138,3 +138,48 @@ def test_empty_selection_and_bad_input():
         export.run(CFG, **bad)
     with pytest.raises(InputError):
         export.run({k: v for k, v in CFG.items() if k != "precision"}, **_inputs([], []))
+
+
+def _curve(a, b, types, kps, n=20):
+    t = np.linspace(0, 1, n)[:, None]
+    return {"points": np.asarray(a, float) + t * (np.subtract(b, a)), "end_types": types, "end_keypoints": kps,
+            "parts": [len(kps) * 100 + kps[0]], "width": 3.0}
+
+
+def test_join_continuations_at_junctions_only_where_the_stroke_goes_straight_on():
+    c = (32.0, 32.0)
+    # T: the bar's halves end at junction 9 and continue each other; the stem turns by 90°.
+    t = [_curve((8, 32), c, [1, 3], [0, 9]), _curve((56, 33), c, [1, 3], [1, 9]), _curve((32, 58), c, [1, 3], [2, 9])]
+    out = export.join_continuations(t, 35.0, 5.0)
+    assert len(out) == 2
+    bar = next(o for o in out if len(o["parts"]) == 2)
+    assert sorted(bar["end_keypoints"]) == [0, 1] and len(bar["points"]) == 39
+    # Y (120°): nothing continues.  A sharp corner or an endpoint is never a joint.
+    y = [_curve(c, (c[0] + 20 * np.cos(a), c[1] + 20 * np.sin(a)), [3, 1], [9, k])
+         for k, a in enumerate(np.deg2rad([90, 210, 330]))]
+    assert len(export.join_continuations(y, 35.0, 5.0)) == 3
+    for ty in (5, 1):
+        straight = [_curve((8, 32), c, [1, ty], [0, 9]), _curve((56, 32), c, [1, ty], [1, 9])]
+        assert len(export.join_continuations(straight, 35.0, 5.0)) == 2
+    # Synthetic ends (type 0) join by position; an X's four halves give its two strokes.
+    syn = [_curve((8, 32), c, [1, 0], [0, -1]), _curve(c, (56, 31), [0, 1], [-1, 1])]
+    assert len(export.join_continuations(syn, 35.0, 5.0)) == 1
+    x = [_curve(c, (c[0] + 20 * np.cos(a), c[1] + 20 * np.sin(a)), [3, 1], [9, k])
+         for k, a in enumerate(np.deg2rad([10, 70, 190, 250]))]
+    out = export.join_continuations(x, 35.0, 5.0)
+    assert sorted(sorted(o["end_keypoints"]) for o in out) == [[0, 2], [1, 3]]
+
+
+def test_run_joins_and_lists_the_parts():
+    c = [32.0, 32.0]
+    curves = [[[8, 32], [20, 32], c], [c, [44, 32], [56, 32]]]
+    inputs = _inputs(curves, [0, 1])
+    for p in inputs["topology"].data["paths"]:
+        p["end_types"], p["end_keypoints"] = [1, 3], [p["id"] - 100, 7]
+    inputs["topology"].data["paths"][1]["end_types"] = [3, 1]
+    inputs["topology"].data["paths"][1]["end_keypoints"] = [7, 1]
+    art = export.run(CFG, **inputs)
+    assert len(art.data["curves"]) == 1 and art.data["curves"][0]["parts"] == [100, 101]
+    assert art.data["svg"].count("<path") == 1
+    off = _cfg(join={**CFG["join"], "enabled": False})
+    assert len(export.run(off, **inputs).data["curves"]) == 2

@@ -43,7 +43,7 @@ def test_picks_the_cheaper_of_two_overlapping_candidates():
     assert art.data["chosen"] == [10, 11]
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["chosen"] == [11]
-    assert art.data["objective"] == pytest.approx(42.0)
+    assert art.data["objective"] == pytest.approx(42.0 + CFG["curve_cost"])
 
 
 def test_valence_of_a_corner_forces_a_second_path():
@@ -61,9 +61,9 @@ def test_junction_valence_counts_through_paths_twice():
     paths = [((0, 1), (4,)), ((2, 3), (4,)), ((0, 4), ()), ((4, 1), ()), ((2, 4), ()), ((4, 3), ())]
     cov = [range(0, 20), range(20, 40), range(0, 10), range(10, 20), range(20, 30), range(30, 40)]
     types = {0: 1, 1: 1, 2: 1, 3: 1, 4: 3}
-    art = _run(paths, cov, [19.0, 19.0, 10.0, 10.0, 10.0, 10.0], types)
+    art = _run(paths, cov, [19.0, 19.0, 10.0, 10.0, 10.0, 10.0], types, curve_cost=0.0)
     assert sorted(art.data["chosen"]) == [10, 11]
-    art = _run(paths, cov, [21.0, 21.0, 10.0, 10.0, 10.0, 10.0], types)
+    art = _run(paths, cov, [21.0, 21.0, 10.0, 10.0, 10.0, 10.0], types, curve_cost=0.0)
     assert sorted(art.data["chosen"]) == [12, 13, 14, 15]
 
 
@@ -75,8 +75,8 @@ def test_a_stroke_passing_an_endpoint_does_not_end_there():
     types = {0: 1, 1: 1, 2: 1, 3: 1}
     art = _run(paths, cov, [40.0, 19.0, 19.0, 10.0], types)
     assert sorted(art.data["chosen"]) == [10, 13]            # three ends at 2 would cost 2 × penalty
-    assert art.data["objective"] == pytest.approx(50.0)
-    art = _run(paths, cov, [40.0, 19.0, 19.0, 10.0], types, excess_penalty=0.0)
+    assert art.data["objective"] == pytest.approx(50.0 + 2 * CFG["curve_cost"])
+    art = _run(paths, cov, [40.0, 19.0, 19.0, 10.0], types, excess_penalty=0.0, curve_cost=0.0)
     assert sorted(art.data["chosen"]) == [11, 12, 13]
     # Passing by gives the endpoint no valence: the stroke that ends there is still required.
     art = _run(paths[:1] + paths[3:], [range(0, 40), range(10, 20)], [40.0, 30.0], types)
@@ -94,6 +94,16 @@ def test_corner_ends_beyond_two_are_charged_and_branches_cap_junctions():
     assert prob.penalty(np.array([1, 1, 0, 1, 1], bool)) == 0.0
     # Junction 6 has only two branches (a loop passes it): valence 2, not 3.
     assert prob.valence_capped[list(prob.keypoints).index(6)] == 2
+
+
+def test_curve_cost_prefers_one_through_path_to_two_halves():
+    # An X: the halves cost exactly as much as the through paths, until every curve costs extra.
+    paths = [((0, 1), (4,)), ((2, 3), (4,)), ((0, 4), ()), ((4, 1), ()), ((2, 4), ()), ((4, 3), ())]
+    cov = [range(0, 20), range(20, 40), range(0, 10), range(10, 20), range(20, 30), range(30, 40)]
+    types = {0: 1, 1: 1, 2: 1, 3: 1, 4: 3}
+    energies = [20.0, 20.0, 9.9, 10.0, 9.9, 10.0]
+    assert sorted(_run(paths, cov, energies, types, curve_cost=0.0).data["chosen"]) == [12, 13, 14, 15]
+    assert sorted(_run(paths, cov, energies, types, curve_cost=1.0).data["chosen"]) == [10, 11]
 
 
 def test_every_covered_pixel_stays_covered():
