@@ -28,8 +28,9 @@ branch" in the topology metrics, 0.68 per drawing on realvec_dev with ground-tru
 0.11 in the ground truth).  The authors' topology glued such chains at unexpected ends
 (``advancedGlueAllJunction``); we join the flowed curves instead: at every junction keypoint and
 synthetic end (never at an endpoint or a sharp corner), the two curve ends whose directions continue
-each other best — turn below ``join.max_turn_deg``, directions taken over ``join.tangent_px`` of arc
-— are joined into one curve, repeatedly.  Valences, and with them the junctions, are unchanged (a
+each other best — turn below ``join.max_turn_deg``, directions taken over ``join.tangent_px`` of arc,
+and every other end there turning off both by ``join.margin_deg`` more (a Y's stem continues neither
+branch) — are joined into one curve, repeatedly.  Valences, and with them the junctions, are unchanged (a
 curve passing a point counts twice, like two ends); only the split disappears.  Joined curves list
 their ``parts`` (selected path ids) and keep the first part's ``id``.
 """
@@ -59,6 +60,8 @@ class ExportParams:
     join: bool
     join_max_turn_deg: float
     join_tangent_px: float
+    join_margin_deg: float
+    join_same_branch_deg: float
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "ExportParams":
@@ -68,7 +71,9 @@ class ExportParams:
                     precision=int(cfg["precision"]), bezier=bool(cfg["bezier"]["enabled"]),
                     bezier_tolerance=float(cfg["bezier"]["tolerance"]), join=bool(cfg["join"]["enabled"]),
                     join_max_turn_deg=float(cfg["join"]["max_turn_deg"]),
-                    join_tangent_px=float(cfg["join"]["tangent_px"]))
+                    join_tangent_px=float(cfg["join"]["tangent_px"]),
+                    join_margin_deg=float(cfg["join"]["margin_deg"]),
+                    join_same_branch_deg=float(cfg["join"]["same_branch_deg"]))
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
@@ -98,7 +103,8 @@ def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarr
     return _unit(pts[0] - q)
 
 
-def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: float) -> list[dict]:
+def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: float,
+                       margin_deg: float = 0.0, same_branch_deg: float = 0.0) -> list[dict]:
     """Join curves that continue each other through a junction keypoint or a synthetic end.
 
     Parameters
@@ -109,6 +115,12 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         Largest turn (angle between one end's outward direction and the other's inward one).
     tangent_px : float
         Arc length over which end directions are measured.
+    margin_deg : float
+        Every other end at the joint must turn off both by at least this much more than they turn
+        into each other (a Y's stem continues neither branch).
+    same_branch_deg : float
+        Other ends leaving within this angle of one of the two run along the same branch (overlapping
+        curves) and do not count as other branches.
 
     Returns
     -------
@@ -117,7 +129,6 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         (junctions) or, for synthetic ends, where their points coincide within 1e-6 px.
     """
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
-    cos_min = np.cos(np.deg2rad(max_turn_deg))
 
     def key(c: dict, e: int):
         t, k = c["end_types"][e], c["end_keypoints"][e]
@@ -139,14 +150,20 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         for ends in groups.values():
             if len(ends) < 2:
                 continue
-            dirs = [end_direction(curves[i]["points"], e == 0, tangent_px) for i, e in ends]
+            dirs = np.array([end_direction(curves[i]["points"], e == 0, tangent_px) for i, e in ends])
+            turn = np.degrees(np.arccos(np.clip(-(dirs @ dirs.T), -1.0, 1.0)))   # 0 = straight on
             for a in range(len(ends)):
                 for b in range(a + 1, len(ends)):
                     if ends[a][0] == ends[b][0]:
                         continue                                    # never close a curve on itself
-                    c = float(-(dirs[a] @ dirs[b]))                 # 1 = straight on
-                    if c >= cos_min and (best is None or c > best[0]):
-                        best = (c, ends[a], ends[b])
+                    t = turn[a, b]
+                    # Ends overlapping a or b (a duplicate on the same branch) are not other branches.
+                    others = [c for c in range(len(ends)) if c not in (a, b)
+                              and min(180 - turn[a, c], 180 - turn[b, c]) > same_branch_deg]
+                    # Unambiguous: no third end continues either of the two almost as well (a Y).
+                    if t <= max_turn_deg and all(min(turn[a, c], turn[b, c]) >= t + margin_deg for c in others) \
+                            and (best is None or t < best[0]):
+                        best = (t, ends[a], ends[b])
         if best is None:
             return curves
         (i, ei), (j, ej) = best[1], best[2]
@@ -383,7 +400,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                        "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
                        "width": float(np.mean(w)) if len(w) else None})
     if params.join:
-        curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px)
+        curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px,
+                                    params.join_margin_deg, params.join_same_branch_deg)
     for c in curves:
         pts = c["points"]
         c["points"] = pts.tolist()

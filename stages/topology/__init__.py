@@ -57,6 +57,24 @@ Choices made on purpose (vs. the paper and the authors' code)
   key vertices of valence 2 — an X gives its four halves and its two full strokes, a T its two bar
   halves, the full bar and the stem.  Each path lists them in ``through_keypoints`` (an addition to
   the INTERFACES contract): a through path contributes valence 2 at each of them.
+  A path through a junction keypoint must go *straight on, unambiguously*
+  (:func:`stages.topology.extract.straight_pass_through`): turn ≤ ``pass_through_max_turn_deg``
+  over ``pass_through_probe_px``, and every other branch there turning off by
+  ``pass_through_margin_deg`` more.  The graph traces many Y junctions as a chain through two
+  branches plus the third apart, and the path turning from branch to branch through the chain's
+  key vertex was otherwise chosen (it is shorter once flowed): the paper allows no such turn.
+* **Endpoints** get one key vertex, a graph tip (valence 1) when one is within the radius
+  (:mod:`.key_vertices`); when it still lies on a passing stroke, paths may run through it
+  (``pass_through_endpoints``), keeping their own position there, and the selection counts no
+  valence for them.  On realvec_dev with ground-truth keypoints 15 % of the endpoints had two or
+  three chosen curves ending on them before.
+* **Loop B** accepts shorter branches than the authors' (≥ ``robust_min_new_vertices`` = 5
+  uncovered vertices instead of 10, and ≥ ``robust_min_new_pixels`` new pixels): stroke ends that
+  overshoot a junction by 7–10 px carry no keypoint in the ground truth (its rule drops endpoints
+  within 2 widths of a junction) and were left out, the largest Hausdorff misses on realvec_dev.
+* ``keypoint_branches`` (data, an addition to the contract): per keypoint, the covering-subgraph
+  edges leaving the zone of ``junction_zone_px`` around its key vertices — what the selection may
+  cap the required valence by (``select.cap_branches``).
 * **Closed paths** (a key vertex back to itself around a loop) are allowed paths, so a loop with a
   single keypoint is representable.
 * **No big-component fallback and no terminal cap.**  Everything above scales with the component.

@@ -25,6 +25,9 @@ class TopologyConfig:
     junction_zone_px: float
     pass_through_junctions: bool
     pass_through_endpoints: bool
+    pass_through_probe_px: float
+    pass_through_max_turn_deg: float
+    pass_through_margin_deg: float
     max_pass_through: int
     max_paths_per_pair: int
     max_enumeration_steps: int

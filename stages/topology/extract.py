@@ -45,7 +45,8 @@ class _Extractor:
         self.is_term = np.zeros(self.n, bool)
         self.terminals: dict[int, dict[int, tuple[int, int]]] = {}
         self.stats = {"loop_a_paths": 0, "loop_a_rejected": 0, "loop_b_paths": 0, "loop_b_rejected": 0,
-                      "lone_component_terminals": 0, "promoted_terminals": 0, "enumeration_budget_hit": 0}
+                      "lone_component_terminals": 0, "promoted_terminals": 0, "enumeration_budget_hit": 0,
+                      "pass_through_rejected": 0}
 
     # -- helpers ------------------------------------------------------------------------------
     def edge_ids(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -266,6 +267,77 @@ class _Extractor:
         return dijkstra(csr, directed=True, indices=src, min_only=True)
 
 
+def _branch(xy: np.ndarray, vs, i: int, step: int, probe: float) -> tuple[np.ndarray, tuple]:
+    """Leaving vertex ``i`` of a path in direction ``step`` (±1): the unit direction to the point
+    ``probe`` px of arc away, and the vertices passed within that arc (identifies the graph branch)."""
+    idx = np.arange(i, len(vs)) if step > 0 else np.arange(i, -1, -1)
+    pts = xy[idx]
+    s = np.r_[0.0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
+    if len(pts) < 2 or s[-1] <= 1e-9:
+        return np.zeros(2), ()
+    t = min(probe, s[-1])
+    q = np.array([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])])
+    d = q - pts[0]
+    return d / max(np.hypot(*d), 1e-12), tuple(int(vs[j]) for j in idx[s <= t])
+
+
+def _turn_deg(d_in: np.ndarray, d_out: np.ndarray) -> float:
+    """Turn between arriving along ``d_in`` (pointing back, away from the joint) and leaving along ``d_out``."""
+    return float(np.degrees(np.arccos(np.clip(-(d_in @ d_out), -1.0, 1.0))))
+
+
+def straight_pass_through(raw: list[dict], ex: "_Extractor", conf: TopologyConfig) -> list[dict]:
+    """Keep a path through a junction keypoint only where it goes straight on, unambiguously.
+
+    At an X or a T the crossing stroke continues straight through the keypoint; at a Y no branch
+    continues another (paper §4.3: no path may turn from one branch into another).  The graph often
+    traces a Y as a chain through two of its branches plus the third as another component, so the
+    chain's key vertex has valence 2, is passable, and a path turning from branch to branch through
+    it was offered — shorter after the flow rounds the turn, so the selection took it (synthetic wye
+    at 45°: 2 curves, one turning).  A path through junction keypoint k is kept iff its turn there
+    (directions over ``pass_through_probe_px`` on each side) is at most ``pass_through_max_turn_deg``
+    and every *other* graph branch at k (those of the candidates ending at k, told apart by the
+    vertices they pass within the probe) turns off the path's own two by at least
+    ``pass_through_margin_deg`` more: a fork whose stem continues into either branch equally well
+    is a Y, not a crossing.
+    """
+    g = ex.g
+    probe, max_turn, margin = conf.pass_through_probe_px, conf.pass_through_max_turn_deg, conf.pass_through_margin_deg
+    junction_kp = {v: k for term in ex.terminals.values() for v, (k, t) in term.items() if t == 3}
+    # Graph branches leaving every junction keypoint, from the candidates that end there.
+    branches: dict[int, dict[tuple, np.ndarray]] = {}
+    for p in raw:
+        vs = p["vertices"]
+        xy = g.xy[np.asarray(vs)]
+        for i, step in ((0, 1), (len(vs) - 1, -1)):
+            k = junction_kp.get(int(vs[i]))
+            if k is not None:
+                d, key = _branch(xy, vs, i, step, probe)
+                branches.setdefault(k, {})[key] = d
+    keep = []
+    for p in raw:
+        vs = p["vertices"]
+        xy = g.xy[np.asarray(vs)]
+        ok = True
+        for v in p["through"]:
+            k = junction_kp.get(int(v))
+            if k is None:
+                continue
+            i = vs.index(v)
+            (d_in, key_in), (d_out, key_out) = _branch(xy, vs, i, -1, probe), _branch(xy, vs, i, 1, probe)
+            turn = _turn_deg(d_in, d_out)
+            others = [e for key, e in branches.get(k, {}).items() if key not in (key_in, key_out)]
+            if turn > max_turn or any(min(_turn_deg(d_in, e), _turn_deg(-e, d_out)) < turn + margin
+                                      for e in others):
+                ok = False
+                break
+        if ok:
+            keep.append(p)
+        else:
+            ex.stats["pass_through_rejected"] += 1
+    return keep
+
+
 def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
                      vertex_root, edges, points: np.ndarray, types: np.ndarray, vertex_flags=None) -> dict:
     """Candidate paths of one drawing.
@@ -300,6 +372,7 @@ def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, 
     n_comp = len(g.comp_ptr) - 1
     for c in range(n_comp):
         raw += ex.component(c)
+    raw = straight_pass_through(raw, ex, conf)
     timings["components_s"] = time.perf_counter() - t1
     dist = ex.interest_distance()
 

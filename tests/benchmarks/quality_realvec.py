@@ -68,7 +68,25 @@ def load_cfg(stage: str) -> dict:
     return yaml.safe_load((ROOT / "conf" / stage / "default.yaml").read_text())
 
 
+_HASHES: dict[str, str] = {}
+
+
+def load_stages() -> None:
+    """Import every stage module and hash its source once, in this process.
+
+    Pool workers fork from a process that already holds the code, so the cache keys always describe
+    the code that runs, even when the sources change during a long run.
+    """
+    import importlib
+
+    for stage in STAGES:
+        importlib.import_module(f"stages.{stage}")
+        _HASHES[stage] = _source_hash(stage)
+
+
 def _source_hash(stage: str) -> str:
+    if stage in _HASHES:
+        return _HASHES[stage]
     h = hashlib.sha1()
     for rel in SOURCES[stage]:
         p = ROOT / rel
@@ -375,6 +393,7 @@ def main(argv=None) -> int:
     names = sorted(p.stem for p in DATA.glob("*.json") if p.with_suffix(".png").is_file())
     names = [n for n in names if any(fnmatch.fnmatch(n, pat) for pat in args.cases)][:args.limit]
     t0 = time.perf_counter()
+    load_stages()
     jobs = [(n, args.keypoints, not args.no_cache) for n in names]
     if args.procs > 1:
         with mp.get_context("fork").Pool(args.procs, maxtasksperchild=8) as pool:

@@ -183,3 +183,72 @@ def test_run_joins_and_lists_the_parts():
     assert art.data["svg"].count("<path") == 1
     off = _cfg(join={**CFG["join"], "enabled": False})
     assert len(export.run(off, **inputs).data["curves"]) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 6: the whole chain prep → field → graph → topology → flow → select → export on synthetic
+# drawings with their exact keypoints
+# ---------------------------------------------------------------------------------------------
+
+def _vectorise(drawing):
+    from stages import field, flow, graph, prep, select, topology
+    from stages.topology.synthetic_graph import synthetic_inputs
+
+    conf = {n: yaml.safe_load((ROOT / "conf" / n / "default.yaml").read_text())
+            for n in ("prep", "field", "graph", "topology", "flow", "select")}
+    p = prep.run(conf["prep"], image_bytes=drawing.png_bytes(), image_name="synthetic.png")
+    f = field.run(conf["field"], prep=p)
+    g = graph.run(conf["graph"], prep=p, field=f)
+    k = synthetic_inputs(drawing)["keypoints"]
+    t = topology.run(conf["topology"], prep=p, field=f, graph=g, keypoints=k)
+    fl = flow.run(conf["flow"], prep=p, field=f, graph=g, topology=t)
+    s = select.run(conf["select"], prep=p, topology=t, flow=fl)
+    return [np.asarray(c["points"]) for c in export.run(CFG, prep=p, topology=t, flow=fl, select=s).data["curves"]]
+
+
+def _distance_to(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    a, b = polyline[:-1], polyline[1:]
+    d = b - a
+    t = np.clip(((points[:, None] - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0, 1)
+    return np.hypot(*np.moveaxis(points[:, None] - a - t[..., None] * d, -1, 0)).min(1)
+
+
+ISSUE6 = {  # drawing, expected number of curves
+    "X": (lambda: synthetic.cross(), 2),
+    "T": (lambda: synthetic.tee(), 2),
+    "Y": (lambda: synthetic.wye(angle=45.0), 3),
+    "zigzag": (lambda: synthetic.zigzag(), 6),
+    "loop": (lambda: synthetic.circle(), 1),
+    "vee": (lambda: synthetic.vee(), 2),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(ISSUE6))
+def test_issue6_synthetic_drawings_vectorise_with_the_right_topology_and_geometry(name):
+    make, n_curves = ISSUE6[name]
+    d = make()
+    curves = _vectorise(d)
+    assert len(curves) == n_curves
+    kps = np.array([k[:2] for k in d.keypoints]) if d.keypoints else np.zeros((0, 2))
+    for c in curves:
+        # No curve farther than 1 px from the stroke centre lines.
+        assert np.max(np.min([_distance_to(c, s) for s in d.strokes], axis=0)) <= 1.0
+        if len(kps):  # ends on the junction / corner / end positions
+            for e in (c[0], c[-1]):
+                assert np.hypot(*(kps - e).T).min() <= 1.5
+        else:         # the loop closes on itself
+            assert np.hypot(*(c[0] - c[-1])) <= 1.5
+    if name == "Y":   # three curves meeting at the centre, none turning from one branch into another
+        centre = np.array(d.keypoints[3][:2])
+        for c in curves:
+            assert min(np.hypot(*(c[0] - centre)), np.hypot(*(c[-1] - centre))) <= 1.5
+            assert min(_distance_to(c, s).max() for s in d.strokes) <= 1.0
+    if name in ("vee", "zigzag"):  # sharp corners stay sharp: two curves end at every corner
+        for x, y, t in d.keypoints:
+            if t == 5:
+                ends = [e for c in curves for e in (c[0], c[-1]) if np.hypot(x - e[0], y - e[1]) <= 1.5]
+                assert len(ends) == 2
+    if name == "T":   # the bar runs through, the stem ends on it
+        stem = next(c for c in curves if min(_distance_to(c, d.strokes[1]).max(), 99) <= 1.0)
+        assert min(np.hypot(*(stem[0] - d.keypoints[3][:2])), np.hypot(*(stem[-1] - d.keypoints[3][:2]))) <= 1.5

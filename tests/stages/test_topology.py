@@ -355,6 +355,21 @@ def test_real_graph_x_t_y():
     assert _uncovered(art, inputs) == 0
 
 
+@pytest.mark.parametrize("angle", [0.0, 30.0, 45.0])
+def test_real_graph_y_keypoint_is_never_passed_through(angle):
+    # The graph traces these wyes as a chain through two branches plus the third one apart: the
+    # chain's key vertex is passable, but turning from branch to branch there is not going straight.
+    art, inputs = _run_real(synthetic.wye(angle=angle, width=2.0 if angle < 45 else 3.0))
+    assert all(p["through_keypoints"] == [] for p in art.data["paths"])
+    assert {(0, 3), (1, 3), (2, 3)} <= set(_pairs(art))
+    assert _uncovered(art, inputs) == 0
+    # A fork whose stem continues into both branches alike is a Y as well; an X still passes.
+    art, _ = _run_real(_fork(centre_keypoint=True))
+    assert all(p["through_keypoints"] == [] for p in art.data["paths"])
+    art, _ = _run_real(synthetic.cross(angle1=10.0, angle2=55.0))
+    assert sum(p["through_keypoints"] == [4] for p in art.data["paths"]) == 2
+
+
 def test_real_graph_turn_test_and_corners():
     art, inputs = _run_real(_fork(centre_keypoint=False))
     assert sorted(_pairs(art)) == [(0, 1), (0, 2)]
