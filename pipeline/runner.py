@@ -130,10 +130,15 @@ def _store(url: str) -> ArtifactStore:
 
 
 def _pin_threads() -> None:
-    for k, v in THREAD_ENV.items():
-        os.environ.setdefault(k, v)
+    """One thread per task for torch and numba (worker processes also get THREAD_ENV at spawn).
+
+    NUMBA_NUM_THREADS is never changed in a running process: numba re-reads its environment when it
+    compiles and refuses a value that differs from the thread pool it already launched.
+    """
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
+    if "numba" in sys.modules:
+        sys.modules["numba"].set_num_threads(1)
 
 
 def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
@@ -206,8 +211,6 @@ def get_client(runtime: dict):
     if address:
         client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
     else:
-        for k, v in THREAD_ENV.items():
-            os.environ.setdefault(k, v)
         cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
                                dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
                                env=dict(THREAD_ENV), silence_logs=50)
