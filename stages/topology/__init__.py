@@ -68,8 +68,9 @@ Choices made on purpose (vs. the paper and the authors' code)
   (``pass_through_endpoints``), keeping their own position there, and the selection counts no
   valence for them.  On realvec_dev with ground-truth keypoints 15 % of the endpoints had two or
   three chosen curves ending on them before.
-* **Loop B** accepts shorter branches than the authors' (≥ ``robust_min_new_vertices`` = 5
-  uncovered vertices instead of 10, and ≥ ``robust_min_new_pixels`` new pixels): stroke ends that
+* **Loop B** accepts shorter branches than the authors' (farther than ``robust_far_px`` = 5 px
+  instead of 7, ≥ ``robust_min_new_vertices`` = 5 uncovered vertices instead of 10, and
+  ≥ ``robust_min_new_pixels`` new pixels): stroke ends that
   overshoot a junction by 7–10 px carry no keypoint in the ground truth (its rule drops endpoints
   within 2 widths of a junction) and were left out, the largest Hausdorff misses on realvec_dev.
 * ``keypoint_branches`` (data, an addition to the contract): per keypoint, the covering-subgraph
