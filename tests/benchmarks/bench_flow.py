@@ -35,25 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+from _common import ROOT, source_hash, stage_cfg  # noqa: E402
 SHARED = ROOT / ".." / "shared" / "data"
 sys.path.insert(0, str(ROOT))
 
 REALVEC = ["qd_dog_00_pencil", "cr_test_277_clean", "qd_giraffe_00_clean"]
 
 
-def _cfg(stage: str) -> dict:
-    import yaml
-
-    return yaml.safe_load((ROOT / "conf" / stage / "default.yaml").read_text())
-
-
-def _source_hash(*paths: Path) -> str:
-    h = hashlib.sha1()
-    for p in paths:
-        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
-            h.update(f.read_bytes())
-    return h.hexdigest()[:12]
+_cfg = stage_cfg
+_source_hash = source_hash
 
 
 def _cached(name: str, data: bytes, cache: Path, build):
