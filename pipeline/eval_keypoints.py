@@ -3,6 +3,7 @@
 Usage::
 
     python -m pipeline.eval_keypoints DIR [--weights PATH] [--threshold 0.5] [--min-distance 3]
+                                          [--typing valence|argmax] [--type-classifier NPZ]
                                           [--limit N] [--render OUT_DIR] [--json OUT.json]
 
 ``DIR`` holds ``<name>.png`` drawings, each with ``<name>.json`` (the realvec_dev format: lists
@@ -118,7 +119,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         "f1_authors_class_mean": {str(t): sum(c["f1_authors_class"][str(t)] for c in cases) / n for t in TYPES},
         "class_f1_pooled": {str(t): pooled.class_f1(t) for t in TYPES},
         "seconds_per_case": t_total / n,
-        "threshold": kp_cfg["threshold"], "min_distance": kp_cfg["min_distance"],
+        "threshold": kp_cfg["threshold"], "min_distance": kp_cfg["min_distance"], "typing": kp_cfg["typing"],
     }
     return {"summary": summary, "cases": cases}
 
@@ -143,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weights", default=None, help="checkpoint (default: the packaged weights)")
     ap.add_argument("--threshold", type=float, default=None)
     ap.add_argument("--min-distance", type=int, default=None)
+    ap.add_argument("--typing", choices=("valence", "argmax"), default=None,
+                    help="keypoint typing (default: conf/keypoints/default.yaml)")
+    ap.add_argument("--type-classifier", default=None, help="type classifier .npz (default: the packaged one)")
     ap.add_argument("--radius", type=float, default=5.0, help="one-to-one matching radius, px")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--render", type=Path, default=None, help="write overlays here")
@@ -152,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {args.folder} does not exist", file=sys.stderr)
         return 2
     res = evaluate_folder(args.folder, {"weights": args.weights, "threshold": args.threshold,
-                                        "min_distance": args.min_distance}, args.radius, args.limit, args.render)
+                                        "min_distance": args.min_distance, "typing": args.typing,
+                                        "type_classifier": args.type_classifier}, args.radius, args.limit, args.render)
     s = res["summary"]
     if s["cases"] == 0:
         print(f"error: no PNG with a .json or .pts ground truth in {args.folder}", file=sys.stderr)
@@ -161,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
         from rich.console import Console
         from rich.table import Table
 
-        t = Table(title=f"keypoints on {args.folder} ({s['cases']} drawings, weights {s['weights']})")
+        t = Table(title=f"keypoints on {args.folder} ({s['cases']} drawings, weights {s['weights']}, "
+                          f"typing {s['typing']})")
         t.add_column("metric")
         t.add_column("value", justify="right")
         rows = [("detection F1, one-to-one ≤ %.0f px (pooled)" % s["radius_px"], s["f1_matched_pooled"]),

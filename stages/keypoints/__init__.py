@@ -3,8 +3,11 @@
 ``run(cfg, prep=Artifact)`` normalises the prep stage's grey image the authors' way, runs the
 keypoint network (:mod:`stages.keypoints.network`) — in overlapping blended tiles when the drawing
 is large — and extracts keypoints from the detection heatmap H1 by non-maximum suppression; each
-keypoint's type is the argmax of the three class heatmaps. See :mod:`stages.keypoints.inference` for
-the choices made.
+keypoint's type is, with ``typing: argmax`` (the paper), the argmax of the three class heatmaps, or
+with ``typing: valence`` (the default) the decision of a small perceptron over those class values and
+the ring profile of the narrow band around the point (:mod:`stages.keypoints.valence`; why: our
+CPU-trained class maps confuse the types on real drawings — both are measured in the model card). See
+:mod:`stages.keypoints.inference` for the other choices made.
 
 The network weights ship inside the package (``weights/keypoints.pt``, see ``weights/MODEL_CARD.md``)
 and are trained by ``polyvec-train`` on procedural drawings (:mod:`stages.keypoints.generator`).
@@ -23,9 +26,12 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.network import KeypointNet, NetConfig
+from stages.keypoints.targets import TYPE_CODES
+from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 PACKAGED_WEIGHTS = WEIGHTS_DIR / "keypoints.pt"
+PACKAGED_TYPE_CLASSIFIER = WEIGHTS_DIR / "type_classifier.npz"
 
 
 def _file_hash(path: Path) -> str:
@@ -34,7 +40,7 @@ def _file_hash(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()[:10]
 
 
-STAGE_VERSION = "1+" + _file_hash(PACKAGED_WEIGHTS)
+STAGE_VERSION = "2+" + _file_hash(PACKAGED_WEIGHTS) + "+" + _file_hash(PACKAGED_TYPE_CLASSIFIER)
 
 _MODELS: dict[str, tuple[KeypointNet, str]] = {}
 
@@ -77,6 +83,26 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     return model, name
 
 
+_TYPE_CLASSIFIERS: dict[str, TypeClassifier] = {}
+
+
+def load_type_classifier(path: str | Path | None = None) -> TypeClassifier:
+    """Load (and cache in this process) the valence type classifier.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        An ``.npz`` written by ``python -m pipeline.train --type-classifier``; ``None`` or
+        ``"packaged"`` for the one shipped with the package.
+    """
+    p = PACKAGED_TYPE_CLASSIFIER if path in (None, "", "packaged") else Path(path)
+    if str(p) not in _TYPE_CLASSIFIERS:
+        if not p.is_file():
+            raise InputError(f"keypoints.type_classifier: no such file {p}")
+        _TYPE_CLASSIFIERS[str(p)] = TypeClassifier.load(p)
+    return _TYPE_CLASSIFIERS[str(p)]
+
+
 def run(cfg: dict, prep: Artifact) -> Artifact:
     """Detect and classify keypoints.
 
@@ -107,9 +133,15 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
     points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
                                            band, bool(cfg["subpixel"]))
+    heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
+    if cfg["typing"] == "valence" and len(points) and "mask" in prep.arrays:
+        clf = load_type_classifier(cfg["type_classifier"])
+        feats = valence_features(np.asarray(prep["mask"], bool), points, class_scores_at(heatmaps, points))
+        types = np.asarray(TYPE_CODES, np.int8)[clf.predict(feats)]
+    elif cfg["typing"] not in ("valence", "argmax"):
+        raise InputError(f"keypoints.typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
-    heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points)})

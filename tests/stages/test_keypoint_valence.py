@@ -1,0 +1,116 @@
+"""Keypoint typing by local valence (stages/keypoints/valence.py) and its training."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from stages import synthetic
+from stages.artifact import Artifact
+from stages.errors import InputError
+from stages.keypoints import PACKAGED_TYPE_CLASSIFIER, STAGE_VERSION, run
+from stages.keypoints.valence import (FEATURES, MAX_RUNS, RING_RADII, TypeClassifier, class_scores_at,
+                                      local_width, ring_profile, valence_features)
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def _runs(features: np.ndarray, ring: int) -> int:
+    col = 3 + ring * (MAX_RUNS + 4)
+    return int(np.argmax(features[col:col + MAX_RUNS + 1]))
+
+
+def test_ring_profile_counts_arcs_and_angles():
+    ring = np.zeros(96, bool)
+    assert ring_profile(ring)[0] == 0
+    ring[10:14] = True
+    ring[58:62] = True  # opposite: a straight stroke through the centre
+    runs, coverage, widest, cos_pair = ring_profile(ring)
+    assert runs == 2 and cos_pair == pytest.approx(-1.0) and coverage == pytest.approx(8 / 96)
+    ring[:] = False
+    ring[94:] = True
+    ring[:3] = True  # one arc wrapping around the start of the vector
+    runs, _, widest, _ = ring_profile(ring)
+    assert runs == 1 and widest == pytest.approx(5 / 96)
+    assert ring_profile(np.ones(96, bool))[:2] == (0, 1.0)
+
+
+@pytest.mark.parametrize("drawing, point, runs", [
+    (synthetic.line(size=96, angle=20.0, length=60.0, width=3.0), "end", 1),
+    (synthetic.cross(size=96, length=70.0, width=3.0), "centre", 4),
+    (synthetic.tee(size=96, length=70.0, width=3.0), "junction", 3),
+    (synthetic.vee(size=96, opening=60.0, length=40.0, width=3.0), "corner", 2),
+])
+def test_valence_features_see_the_branches(drawing, point, runs):
+    kinds = {"end": 1, "centre": 3, "junction": 3, "corner": 5}
+    pts = np.array([k[:2] for k in drawing.keypoints if k[2] == kinds[point]][:1], float)
+    mask = drawing.grey < 0.65
+    f = valence_features(mask, pts, np.zeros((1, 3)))
+    assert f.shape == (1, FEATURES)
+    # At the larger rings (beyond the stroke's own width) the branch count is the valence.
+    assert _runs(f[0], 2) == runs and _runs(f[0], 3) == runs
+    assert 2.0 <= local_width(mask, pts)[0] <= 6.0  # a vee tip is wider than its 3-px legs
+
+
+def test_class_scores_at_reads_the_peak_pixel():
+    h = np.zeros((4, 10, 10), np.float32)
+    h[1:4, 3, 7] = [0.1, 0.9, 0.2]
+    assert np.allclose(class_scores_at(h, np.array([[7.5, 3.5]])), [[0.1, 0.9, 0.2]])
+
+
+def test_type_classifier_roundtrip(tmp_path):
+    rng = np.random.default_rng(0)
+    p = {"mean": np.zeros(FEATURES), "std": np.ones(FEATURES), "w1": rng.normal(size=(FEATURES, 4)),
+         "b1": np.zeros(4), "w2": rng.normal(size=(4, 3)), "b2": np.zeros(3)}
+    clf = TypeClassifier(p)
+    x = rng.normal(size=(5, FEATURES))
+    clf.save(tmp_path / "c.npz")
+    assert np.array_equal(TypeClassifier.load(tmp_path / "c.npz").predict(x), clf.predict(x))
+    with pytest.raises(ValueError):
+        TypeClassifier(p | {"w1": np.zeros((FEATURES + 1, 4))})
+
+
+def _kp_cfg(**kw) -> dict:
+    return yaml.safe_load((CONF / "keypoints" / "default.yaml").read_text()) | kw
+
+
+@pytest.mark.skipif(not PACKAGED_TYPE_CLASSIFIER.is_file(), reason="no shipped type classifier")
+def test_stage_types_by_valence_by_default():
+    assert _kp_cfg()["typing"] == "valence" and PACKAGED_TYPE_CLASSIFIER.name[:10] in "type_classifier.npz"
+    d = synthetic.tee(size=96, length=70.0, width=3.0)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    a = run(_kp_cfg(), prep=prep)
+    b = run(_kp_cfg(typing="argmax"), prep=prep)
+    assert np.array_equal(a["points"], b["points"])  # typing never moves or drops points
+    gt = {(round(k[0]), round(k[1])): k[2] for k in d.keypoints}
+    got = {(round(float(x)), round(float(y))): int(t) for (x, y), t in zip(a["points"], a["types"])}
+    near = [t for (x, y), t in got.items() if any(abs(x - gx) <= 3 and abs(y - gy) <= 3 and gt[(gx, gy)] == 3
+                                                 for gx, gy in gt)]
+    assert near == [3]  # the T's junction is typed as a junction
+    assert STAGE_VERSION.count("+") == 2
+
+
+def test_stage_rejects_unknown_typing_and_missing_classifier(tmp_path):
+    d = synthetic.line(size=48)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    with pytest.raises(InputError, match="typing"):
+        run(_kp_cfg(typing="bogus"), prep=prep)
+    with pytest.raises(InputError, match="type_classifier"):
+        run(_kp_cfg(type_classifier=str(tmp_path / "none.npz")), prep=prep)
+
+
+def test_type_classifier_training_smoke(tmp_path):
+    from pipeline.train import compose_plain, train_type_classifier
+
+    torch.set_num_threads(1)
+    cfg = compose_plain(CONF, [f"train.out_dir={tmp_path}", "train.type_classifier.drawings=4",
+                               "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20"])
+    rec = train_type_classifier(cfg)
+    assert rec["keypoints"] > 0 and sum(rec["class_counts"]) == rec["keypoints"]
+    clf = TypeClassifier.load(tmp_path / "type_classifier.npz")
+    assert clf.params["w1"].shape == (FEATURES, int(cfg["train"]["type_classifier"]["hidden"]))
+    assert 0.0 <= rec["val_accuracy"] <= 1.0
