@@ -33,6 +33,25 @@ and every other end there turning off both by ``join.margin_deg`` more (a Y's st
 branch) — are joined into one curve, repeatedly.  Valences, and with them the junctions, are unchanged (a
 curve passing a point counts twice, like two ends); only the split disappears.  Joined curves list
 their ``parts`` (selected path ids) and keep the first part's ``id``.
+
+Spurs (``spurs.enabled``; a choice beyond the paper).  realvec_dev labels the tip of a stroke that
+overshoots a crossing as an endpoint, and the selection then returns a short curve from the junction
+to that tip next to the curve it continues: a "dangling branch" (the ground-truth stroke is one
+long curve).  A curve no longer than ``max(spurs.max_px, spurs.max_widths · width)`` from a junction
+keypoint to an endpoint keypoint is joined to the piece at that junction that continues it best —
+another curve ending there, or one half of a curve passing within ``spurs.near_px`` (which is
+split there) — when the turn is at most ``spurs.max_turn_deg``.  The drawn points and the
+valences are unchanged (realvec_dev, GT keypoints: dangling 0.50 → 0.35 per drawing together with
+the overshoots below).
+
+Overshoots (``overshoot.enabled``; a choice beyond the paper).  When no keypoint marks the tip of an
+overshoot, the topology ends the stroke at the junction and the few pixels of ink beyond are lost;
+on realvec_dev that tip was the largest Hausdorff error in about a quarter of the drawings.  A curve
+end at a junction or synthetic end is extended straight on to where the ink (prep ``mask``) stops,
+less half the stroke width (a stroke's centre line ends half a width inside its ink), when that is
+between ``max(min_px, min_widths·w)`` and ``max(max_px, max_widths·w)`` and the new tip keeps
+``clearance`` × its length from every other curve (see :func:`extend_overshoots`; a plain T gives
+≈ 0, a Y's gap fails the clearance).  Hausdorff median 3.38 → 3.16 px with GT keypoints.
 """
 
 from __future__ import annotations
@@ -45,7 +64,7 @@ import numpy as np
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 
-STAGE_VERSION = "1"
+STAGE_VERSION = "2"
 
 
 @dataclass(frozen=True)
@@ -62,6 +81,17 @@ class ExportParams:
     join_tangent_px: float
     join_margin_deg: float
     join_same_branch_deg: float
+    spurs: bool
+    spur_max_px: float
+    spur_max_widths: float
+    spur_max_turn_deg: float
+    spur_near_px: float
+    overshoot: bool
+    overshoot_min_px: float
+    overshoot_min_widths: float
+    overshoot_max_px: float
+    overshoot_max_widths: float
+    overshoot_clearance: float
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "ExportParams":
@@ -73,7 +103,17 @@ class ExportParams:
                     join_max_turn_deg=float(cfg["join"]["max_turn_deg"]),
                     join_tangent_px=float(cfg["join"]["tangent_px"]),
                     join_margin_deg=float(cfg["join"]["margin_deg"]),
-                    join_same_branch_deg=float(cfg["join"]["same_branch_deg"]))
+                    join_same_branch_deg=float(cfg["join"]["same_branch_deg"]),
+                    spurs=bool(cfg["spurs"]["enabled"]), spur_max_px=float(cfg["spurs"]["max_px"]),
+                    spur_max_widths=float(cfg["spurs"]["max_widths"]),
+                    spur_max_turn_deg=float(cfg["spurs"]["max_turn_deg"]),
+                    spur_near_px=float(cfg["spurs"]["near_px"]),
+                    overshoot=bool(cfg["overshoot"]["enabled"]),
+                    overshoot_min_px=float(cfg["overshoot"]["min_px"]),
+                    overshoot_min_widths=float(cfg["overshoot"]["min_widths"]),
+                    overshoot_max_px=float(cfg["overshoot"]["max_px"]),
+                    overshoot_max_widths=float(cfg["overshoot"]["max_widths"]),
+                    overshoot_clearance=float(cfg["overshoot"]["clearance"]))
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
@@ -185,6 +225,226 @@ def _mean_width(a: dict, b: dict):
     la = np.hypot(*np.diff(a["points"], axis=0).T).sum()
     lb = np.hypot(*np.diff(b["points"], axis=0).T).sum()
     return float((wa * la + wb * lb) / max(la + lb, 1e-12))
+
+
+# ---------------------------------------------------------------------------------------------
+# Short spurs at junctions and unlabelled overshoots
+# ---------------------------------------------------------------------------------------------
+
+def _length(points: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(np.asarray(points, np.float64), axis=0).T).sum()) if len(points) > 1 else 0.0
+
+
+def _turn_deg(d_out_a: np.ndarray, d_out_b: np.ndarray) -> float:
+    """Turn between two ends meeting at a point (outward directions; 0° = straight on)."""
+    return float(np.degrees(np.arccos(np.clip(-(d_out_a @ d_out_b), -1.0, 1.0))))
+
+
+def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_turn_deg: float,
+                 tangent_px: float, near_px: float) -> list[dict]:
+    """Attach every short junction-to-endpoint curve to the curve it continues at the junction.
+
+    A *spur* is a curve no longer than ``max(spur_px, spur_widths · width)`` with one end at a
+    junction keypoint and the other at an endpoint keypoint: a stroke that overshoots a crossing, or
+    runs into another stroke and stops just beyond it.  It is joined to whichever piece at the
+    junction continues it best — another curve ending at that keypoint, or one half of a curve
+    passing within ``near_px`` of it (that curve is split there; the split vertex moves onto the
+    keypoint) — when the turn is at most ``max_turn_deg``.  The drawn points and the valence at the
+    junction are unchanged; only the partition into curves changes.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`join_continuations` (``points``, ``end_types``, ``end_keypoints``, ``parts``,
+        ``width``, ``id``).
+    spur_px, spur_widths : float
+        Length limit of a spur: ``max(spur_px, spur_widths · width)``.
+    max_turn_deg : float
+        Largest turn between the spur and the piece it is joined to.
+    tangent_px : float
+        Arc length over which end directions are measured.
+    near_px : float
+        A curve passes through the junction when one of its interior vertices lies this close.
+
+    Returns
+    -------
+    list of dict
+    """
+    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+    done: set = set()
+    while True:
+        found = None
+        for i, c in enumerate(curves):
+            w = c.get("width") or 0.0
+            if c["id"] in done or _length(c["points"]) > max(spur_px, spur_widths * w):
+                continue
+            for e in (0, 1):
+                if c["end_types"][e] == 3 and c["end_types"][1 - e] == 1 and c["end_keypoints"][e] >= 0:
+                    found = (i, e)
+                    break
+            if found:
+                break
+        if found is None:
+            return curves
+        i, e = found
+        spur = curves[i]
+        done.add(spur["id"])
+        k = spur["end_keypoints"][e]
+        p = spur["points"][0 if e == 0 else -1]
+        d_s = end_direction(spur["points"], e == 0, tangent_px)
+        best = None                                     # (turn, j, kind, index)
+        for j, c in enumerate(curves):
+            if j == i:
+                continue
+            for f in (0, 1):
+                if c["end_types"][f] == 3 and c["end_keypoints"][f] == k:
+                    t = _turn_deg(d_s, end_direction(c["points"], f == 0, tangent_px))
+                    if best is None or t < best[0]:
+                        best = (t, j, "end", f)
+            pts = c["points"]
+            if len(pts) > 2:
+                dist = np.hypot(*(pts[1:-1] - p).T)
+                m = int(np.argmin(dist)) + 1
+                if dist[m - 1] <= near_px:
+                    for f, half in ((1, pts[:m + 1]), (0, pts[m:])):
+                        if _length(half) <= 1e-9:
+                            continue
+                        t = _turn_deg(d_s, end_direction(half, f == 0, tangent_px))
+                        if best is None or t < best[0]:
+                            best = (t, j, "split", (m, f))
+        if best is None or best[0] > max_turn_deg:
+            continue
+        _, j, kind, where = best
+        other = curves[j]
+        sp = spur["points"] if e == 1 else spur["points"][::-1]        # runs into the junction
+        s_type, s_kp = spur["end_types"][1 - e], spur["end_keypoints"][1 - e]
+        rest = []
+        if kind == "end":
+            f = where
+            op = other["points"] if f == 0 else other["points"][::-1]  # runs out of the junction
+            o_type, o_kp = other["end_types"][1 - f], other["end_keypoints"][1 - f]
+            parts = list(other["parts"])
+        else:
+            m, f = where
+            pts = other["points"].copy()
+            pts[m] = p
+            first, second = pts[:m + 1], pts[m:]
+            if f == 1:      # the spur continues into the first half (read backwards from the junction)
+                op, o_type, o_kp = first[::-1], other["end_types"][0], other["end_keypoints"][0]
+                rest = [dict(other, points=second, end_types=[3, other["end_types"][1]],
+                             end_keypoints=[k, other["end_keypoints"][1]])]
+            else:
+                op, o_type, o_kp = second, other["end_types"][1], other["end_keypoints"][1]
+                rest = [dict(other, points=first, end_types=[other["end_types"][0], 3],
+                             end_keypoints=[other["end_keypoints"][0], k])]
+            parts = list(other["parts"])
+        joined = {**spur, "points": np.concatenate([sp, op[1:]]), "end_types": [s_type, o_type],
+                  "end_keypoints": [s_kp, o_kp], "parts": list(spur["parts"]) + parts,
+                  "width": _mean_width(spur, other)}
+        curves = [c for q, c in enumerate(curves) if q not in (i, j)] + rest + [joined]
+
+
+def _distance_to_polyline(p: np.ndarray, pts: np.ndarray) -> float:
+    """Euclidean distance from point p to a polyline (n ≥ 1 points)."""
+    if len(pts) == 1:
+        return float(np.hypot(*(pts[0] - p)))
+    a, b = pts[:-1], pts[1:]
+    ab = b - a
+    den = np.maximum((ab * ab).sum(1), 1e-24)
+    u = np.clip(((p - a) * ab).sum(1) / den, 0.0, 1.0)
+    return float(np.hypot(*(a + u[:, None] * ab - p).T).min())
+
+
+def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, min_px: float,
+                      min_widths: float, max_px: float, max_widths: float, clearance: float,
+                      step_px: float = 0.25) -> list[dict]:
+    """Extend curve ends at junctions over an ink overshoot that no keypoint marks.
+
+    A stroke that crosses another one and stops a few pixels beyond leaves a short tip of ink past
+    the junction.  Without an endpoint keypoint at the tip the topology ends the curve at the
+    junction and the tip is lost (it is the largest Hausdorff error of many realvec_dev drawings).
+    For every curve end at a junction keypoint or a synthetic end, we walk from the end straight on
+    (its direction over ``tangent_px``) through the band ``mask`` until the ink stops at distance
+    ``s``; the stroke's centre line ends half a width before its ink does, so the overshoot is
+    ``e = s − width/2``.  The curve is extended by ``e`` when
+    ``max(min_px, min_widths·width) ≤ e ≤ max(max_px, max_widths·width)`` (a plain T has e ≈ 0: the
+    ink ahead is the crossed stroke's half width; ink that goes on is another stroke's business) and
+    the new tip lies at least ``clearance · e`` from every other curve (a Y's gap between branches,
+    or a neighbouring stroke, fails this).
+
+    The extended end is no longer at its keypoint: its type becomes 0 and its keypoint −1, and the
+    junction is listed in the curve's ``through_keypoints``; ``extended`` gives the length (px) added
+    at each end.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`join_continuations`.
+    mask : numpy.ndarray
+        bool (H, W) band (prep ``mask``); pixel [i, j] covers x ∈ [j, j+1), y ∈ [i, i+1).
+    tangent_px : float
+        Arc length over which end directions are measured.
+    min_px, min_widths, max_px, max_widths : float
+        Bounds on the extension (px, and in units of the curve's width).
+    clearance : float
+        Minimum distance of the new tip from other curves, as a fraction of the extension.
+    step_px : float
+        Sampling step of the walk.
+
+    Returns
+    -------
+    list of dict
+    """
+    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+    h, w_img = mask.shape
+    adds = []
+    for i, c in enumerate(curves):
+        w = float(c.get("width") or 0.0)
+        lo, hi = max(min_px, min_widths * w), max(max_px, max_widths * w)
+        ext = [None, None]
+        for e in (0, 1):
+            if c["end_types"][e] not in JOINABLE_TYPES or _length(c["points"]) <= 1e-9:
+                continue
+            p = c["points"][0 if e == 0 else -1]
+            d = end_direction(c["points"], e == 0, tangent_px)
+            s = np.arange(0.0, hi + 0.5 * w + 1.0, step_px)
+            x, y = p[0] + s * d[0], p[1] + s * d[1]
+            j, ii = np.floor(x).astype(int), np.floor(y).astype(int)
+            inside = (ii >= 0) & (ii < h) & (j >= 0) & (j < w_img)
+            ink = np.zeros(len(s), bool)
+            ink[inside] = mask[ii[inside], j[inside]]
+            if ink.all():
+                continue                                   # the ink goes on: not an overshoot
+            ln = float(s[np.argmin(ink)]) - 0.5 * w
+            if not lo <= ln <= hi:
+                continue
+            tip = p + ln * d
+            # Other curves, and this curve's own far part (a closed loop's other end, a hairpin).
+            pts = c["points"] if e == 0 else c["points"][::-1]
+            arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
+            own = pts[arc > 2.0 * ln]
+            near = min([_distance_to_polyline(tip, o["points"]) for q, o in enumerate(curves) if q != i]
+                       + ([_distance_to_polyline(tip, own)] if len(own) else []), default=np.inf)
+            if near < clearance * ln:
+                continue
+            ext[e] = (tip, ln)
+        adds.append(ext)
+    for c, ext in zip(curves, adds):
+        if ext == [None, None]:
+            continue
+        pts, types, kps = c["points"], list(c["end_types"]), list(c["end_keypoints"])
+        through = list(c.get("through_keypoints", []))
+        lengths = [0.0, 0.0]
+        for e in (0, 1):
+            if ext[e] is None:
+                continue
+            tip, ln = ext[e]
+            pts = np.vstack([tip[None], pts]) if e == 0 else np.vstack([pts, tip[None]])
+            if kps[e] >= 0:
+                through.append(int(kps[e]))
+            types[e], kps[e], lengths[e] = 0, -1, round(float(ln), 3)
+        c.update(points=pts, end_types=types, end_keypoints=kps, through_keypoints=through, extended=lengths)
+    return curves
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,6 +662,14 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if params.join:
         curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px,
                                     params.join_margin_deg, params.join_same_branch_deg)
+    if params.spurs:
+        curves = attach_spurs(curves, params.spur_max_px, params.spur_max_widths, params.spur_max_turn_deg,
+                              params.join_tangent_px, params.spur_near_px)
+    mask = prep.arrays.get("mask")
+    if params.overshoot and mask is not None:
+        curves = extend_overshoots(curves, np.asarray(mask, bool), params.join_tangent_px, params.overshoot_min_px,
+                                   params.overshoot_min_widths, params.overshoot_max_px,
+                                   params.overshoot_max_widths, params.overshoot_clearance)
     for c in curves:
         pts = c["points"]
         c["points"] = pts.tolist()

@@ -252,3 +252,93 @@ def test_issue6_synthetic_drawings_vectorise_with_the_right_topology_and_geometr
     if name == "T":   # the bar runs through, the stem ends on it
         stem = next(c for c in curves if min(_distance_to(c, d.strokes[1]).max(), 99) <= 1.0)
         assert min(np.hypot(*(stem[0] - d.keypoints[3][:2])), np.hypot(*(stem[-1] - d.keypoints[3][:2]))) <= 1.5
+
+
+# ---------------------------------------------------------------------------------------------
+# Spurs at junctions and unlabelled overshoots
+# ---------------------------------------------------------------------------------------------
+
+def _piece(cid, pts, types, kps, width=3.0):
+    return {"id": cid, "points": np.asarray(pts, float), "end_types": list(types), "end_keypoints": list(kps),
+            "parts": [cid], "width": width}
+
+
+def _line(a, b, step=0.5):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(2, int(np.ceil(np.hypot(*(b - a)) / step)) + 1)
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
+def _ink_set(curves):
+    return {tuple(np.round(p, 6)) for c in curves for p in np.asarray(c["points"])}
+
+
+def test_spur_joins_the_curve_ending_at_the_junction_that_it_continues():
+    # A stroke arrives from the left at junction 7 and overshoots it by 6 px (a spur to endpoint 9);
+    # a second curve leaves the junction upwards.
+    a = _piece(1, _line((0, 20), (20, 20)), [1, 3], [8, 7])
+    up = _piece(2, _line((20, 20), (20, 0)), [3, 1], [7, 10])
+    spur = _piece(3, _line((20, 20), (25, 23)), [3, 1], [7, 9])
+    out = export.attach_spurs([a, up, spur], 12.0, 4.0, 60.0, 5.0, 1.5)
+    assert len(out) == 2
+    joined = next(c for c in out if len(c["parts"]) == 2)
+    assert sorted(joined["parts"]) == [1, 3] and sorted(joined["end_keypoints"]) == [8, 9]
+    assert _ink_set(out) == _ink_set([a, up, spur])
+
+
+def test_spur_splits_a_curve_passing_through_the_junction():
+    through = _piece(1, _line((0, 0), (40, 40)), [1, 1], [1, 2])            # passes (20, 20)
+    spur = _piece(3, _line((20, 20), (24.6, 28.9)), [3, 1], [7, 9])         # 18° off the lower half
+    out = export.attach_spurs([through, spur], 12.0, 4.0, 60.0, 5.0, 1.5)
+    assert len(out) == 2
+    joined = next(c for c in out if 3 in c["parts"])
+    rest = next(c for c in out if 3 not in c["parts"])
+    assert sorted(joined["end_keypoints"]) == [1, 9]                         # upper half + spur
+    assert rest["end_keypoints"] == [7, 2] and rest["end_types"] == [3, 1]   # lower half ends at 7
+    np.testing.assert_allclose(rest["points"][0], [20, 20])
+    # A spur at a right angle to the through curve, or a long curve, stays on its own.
+    square = _piece(3, _line((20, 20), (26, 14)), [3, 1], [7, 9])
+    assert len(export.attach_spurs([through, square], 12.0, 4.0, 60.0, 5.0, 1.5)) == 2
+    assert all(len(c["parts"]) == 1 for c in export.attach_spurs([through, square], 12.0, 4.0, 60.0, 5.0, 1.5))
+    long = _piece(3, _line((20, 20), (28, 50)), [3, 1], [7, 9])
+    assert all(len(c["parts"]) == 1 for c in export.attach_spurs([through, long], 12.0, 4.0, 60.0, 5.0, 1.5))
+
+
+def _overshoot_drawing(overshoot, width=3.0):
+    bar = np.array([[6.0, 30.0], [74.0, 30.0]])
+    stem = np.array([[40.0, 6.0], [40.0, 30.0 + overshoot]])
+    grey = synthetic.render((60, 80), [bar, stem], width)
+    curves = [_piece(1, _line(*bar), [1, 1], [1, 2], width), _piece(2, _line((40, 6), (40, 30)), [1, 3], [3, 4], width)]
+    return grey < 0.5, curves
+
+
+@pytest.mark.parametrize("overshoot", [0.0, 6.0])
+def test_overshoot_beyond_a_junction_is_drawn_and_a_plain_tee_is_not_extended(overshoot):
+    mask, curves = _overshoot_drawing(overshoot)
+    out = export.extend_overshoots(curves, mask, 5.0, 2.0, 1.0, 12.0, 4.0, 0.7)
+    stem = next(c for c in out if c["id"] == 2)
+    bar = next(c for c in out if c["id"] == 1)
+    np.testing.assert_allclose(bar["points"], curves[0]["points"])          # endpoint ends never move
+    if overshoot == 0:
+        np.testing.assert_allclose(stem["points"], curves[1]["points"])
+        assert stem["end_types"] == [1, 3]
+    else:
+        assert abs(stem["points"][-1][1] - (30.0 + overshoot)) <= 1.0
+        assert abs(stem["points"][-1][0] - 40.0) <= 1e-6
+        assert stem["end_types"] == [1, 0] and stem["end_keypoints"] == [3, -1] and stem["through_keypoints"] == [4]
+
+
+def test_no_overshoot_into_the_gap_of_a_wye_or_past_a_closed_loop():
+    d = synthetic.wye(size=64, length=22.0, width=3.0)
+    mask = d.grey < 0.5
+    c = np.array(d.keypoints[3][:2])
+    # Two branches end at the junction, the third one does too: no end may grow into the gap.
+    curves = [_piece(k, _line(s[1], c), [1, 3], [k, 3]) for k, s in enumerate(d.strokes)]
+    out = export.extend_overshoots(curves, mask, 5.0, 2.0, 1.0, 12.0, 4.0, 0.7)
+    for a, b in zip(curves, out):
+        np.testing.assert_allclose(a["points"], b["points"])
+    d = synthetic.circle()
+    loop = np.asarray(d.strokes[0])
+    out = export.extend_overshoots([_piece(0, loop, [0, 0], [-1, -1])], d.grey < 0.5, 5.0, 2.0, 1.0, 12.0, 4.0, 0.7)
+    np.testing.assert_allclose(out[0]["points"], loop)
+
