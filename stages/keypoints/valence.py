@@ -25,6 +25,11 @@ Choices
   the stroke's own half width, and wide strokes need wider rings.
 * Each ring is sampled at 96 points by nearest pixel from the narrow band (the prep stage's mask,
   already thresholded and repaired), so the profile does not depend on pencil tone.
+* Only the stroke the point lies on counts: within the disk of each ring the band is split into
+  8-connected components and the one holding the point is sampled. An end that stops short of another
+  stroke (an endpoint by the labelling rule, metrics.md §4.2) then has one branch, not three. On
+  realvec_dev this raised the accuracy from 0.834 to 0.862 (the perceptron trained on 700 generated
+  drawings in both cases; the plain rings are kept out, adding them changed it by +0.002).
 * A ring entirely inside ink (a blob) counts as 0 runs with coverage 1.
 """
 
@@ -120,6 +125,39 @@ def class_scores_at(heatmaps: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(heatmaps[1:4, i, j], np.float32).T
 
 
+_THETA = 2 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
+
+
+def _connected_ring(mask: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray:
+    """Ink along a circle, counting only the stroke the point lies on.
+
+    The band inside the disk is split into 8-connected components; only the one holding the point
+    (or, when the point sits just off the ink, the one nearest to it) is sampled, so a neighbouring
+    stroke that passes near an end without touching it does not look like a branch.
+    """
+    h, w = mask.shape
+    x, y = float(point[0]), float(point[1])
+    reach = int(np.ceil(radius)) + 2
+    xi, yi = int(np.floor(x)), int(np.floor(y))
+    i0, i1, j0, j1 = max(yi - reach, 0), min(yi + reach + 1, h), max(xi - reach, 0), min(xi + reach + 1, w)
+    ring = np.zeros(RING_SAMPLES, bool)
+    if i0 >= i1 or j0 >= j1:
+        return ring
+    yy, xx = np.mgrid[i0:i1, j0:j1]
+    disk = mask[i0:i1, j0:j1] & (((xx + 0.5 - x) ** 2 + (yy + 0.5 - y) ** 2) <= (radius + 1.5) ** 2)
+    labels, count = ndimage.label(disk, structure=np.ones((3, 3), bool))
+    if count == 0:
+        return ring
+    ii, jj = np.nonzero(labels)
+    nearest = np.argmin((jj + j0 + 0.5 - x) ** 2 + (ii + i0 + 0.5 - y) ** 2)
+    stroke = labels == labels[ii[nearest], jj[nearest]]
+    xs = np.floor(x + radius * np.cos(_THETA)).astype(int) - j0
+    ys = np.floor(y + radius * np.sin(_THETA)).astype(int) - i0
+    inside = (xs >= 0) & (xs < j1 - j0) & (ys >= 0) & (ys < i1 - i0)
+    ring[inside] = stroke[ys[inside], xs[inside]]
+    return ring
+
+
 def valence_features(mask: np.ndarray, points: np.ndarray, class_scores: np.ndarray) -> np.ndarray:
     """Feature vectors of keypoints for :class:`TypeClassifier`.
 
@@ -144,24 +182,17 @@ def valence_features(mask: np.ndarray, points: np.ndarray, class_scores: np.ndar
     if n == 0:
         return out
     mask = np.asarray(mask, bool)
-    h, w = mask.shape
     width = local_width(mask, points)
-    theta = 2 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
     out[:, :3] = np.asarray(class_scores, np.float32).reshape(n, 3)
-    col = 3
-    for a, b in RING_RADII:
-        radius = a * width + b  # (N,)
-        xs = np.floor(points[:, :1] + radius[:, None] * np.cos(theta)[None]).astype(int)
-        ys = np.floor(points[:, 1:] + radius[:, None] * np.sin(theta)[None]).astype(int)
-        inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
-        rings = np.zeros(xs.shape, bool)
-        rings[inside] = mask[ys[inside], xs[inside]]
-        for k in range(n):
-            runs, coverage, widest, cos_pair = ring_profile(rings[k])
+    for k in range(n):
+        col = 3
+        for a, b in RING_RADII:
+            ring = _connected_ring(mask, points[k], a * width[k] + b)
+            runs, coverage, widest, cos_pair = ring_profile(ring)
             out[k, col + min(runs, MAX_RUNS)] = 1.0
             out[k, col + MAX_RUNS + 1:col + MAX_RUNS + 4] = (coverage, widest, cos_pair)
-        col += MAX_RUNS + 4
-    out[:, col] = width / 10.0
+            col += MAX_RUNS + 4
+    out[:, -1] = width / 10.0
     return out
 
 

@@ -56,6 +56,25 @@ def test_valence_features_see_the_branches(drawing, point, runs):
     assert 2.0 <= local_width(mask, pts)[0] <= 6.0  # a vee tip is wider than its 3-px legs
 
 
+def test_a_stroke_passing_near_an_end_is_not_a_branch():
+    # An end that stops 3 px short of a crossing stroke: an endpoint by the labelling rule. Only the
+    # stroke the point lies on is sampled, so every ring sees one branch.
+    from skimage.draw import line_aa
+
+    img = np.ones((80, 80), np.float32)
+    for r0, c0, r1, c1, off in [(40, 10, 40, 37, 0), (10, 43, 70, 43, 0)]:
+        for d in (-1, 0, 1):
+            rr, cc, val = line_aa(r0 + d * (c0 == c1), c0 + d * (r0 == r1), r1 + d * (c0 == c1), c1 + d * (r0 == r1))
+            img[rr, cc] = np.minimum(img[rr, cc], 1 - val)
+    mask = img < 0.65
+    f = valence_features(mask, np.array([[37.5, 40.5]]), np.zeros((1, 3)))
+    assert [_runs(f[0], k) for k in range(len(RING_RADII))] == [1] * len(RING_RADII)
+    # Joined to the other stroke (a T), the larger rings see three branches.
+    mask[39:42, 37:43] = True
+    f = valence_features(mask, np.array([[43.5, 40.5]]), np.zeros((1, 3)))
+    assert _runs(f[0], 3) == 3 and _runs(f[0], 4) == 3
+
+
 def test_class_scores_at_reads_the_peak_pixel():
     h = np.zeros((4, 10, 10), np.float32)
     h[1:4, 3, 7] = [0.1, 0.9, 0.2]
