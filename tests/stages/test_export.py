@@ -342,3 +342,16 @@ def test_no_overshoot_into_the_gap_of_a_wye_or_past_a_closed_loop():
     out = export.extend_overshoots([_piece(0, loop, [0, 0], [-1, -1])], d.grey < 0.5, 5.0, 2.0, 1.0, 12.0, 4.0, 0.7)
     np.testing.assert_allclose(out[0]["points"], loop)
 
+
+
+def test_spur_at_a_synthetic_junction_with_a_free_synthetic_end():
+    # Topology ends without keypoints: two curves share the synthetic point (20, 20); the spur's far
+    # end is shared by nobody, so it is free.
+    a = _piece(1, _line((0, 20), (20, 20)), [1, 0], [8, -1])
+    b = _piece(2, _line((20, 20), (20, 0)), [0, 1], [-1, 10])
+    spur = _piece(3, _line((20, 20), (25, 23)), [0, 0], [-1, -1])
+    out = export.attach_spurs([a, b, spur], 12.0, 4.0, 60.0, 5.0, 1.5)
+    assert len(out) == 2 and sorted(next(c for c in out if len(c["parts"]) == 2)["parts"]) == [1, 3]
+    # The same spur whose far end is shared (a chain goes on there) is no spur.
+    c = _piece(4, _line((25, 23), (45, 23)), [0, 1], [-1, 11])
+    assert len(export.attach_spurs([a, b, spur, c], 12.0, 4.0, 60.0, 5.0, 1.5)) == 4
