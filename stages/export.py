@@ -370,7 +370,13 @@ def _distance_to_polyline(p: np.ndarray, pts: np.ndarray) -> float:
     """Euclidean distance from point p to a polyline (n ≥ 1 points)."""
     if len(pts) == 1:
         return float(np.hypot(*(pts[0] - p)))
-    a, b = pts[:-1], pts[1:]
+    return _distance_to_segments(p, pts[:-1], pts[1:])
+
+
+def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Euclidean distance from point p to the nearest of the segments a[k]–b[k] (inf when none)."""
+    if len(a) == 0:
+        return np.inf
     ab = b - a
     den = np.maximum((ab * ab).sum(1), 1e-24)
     u = np.clip(((p - a) * ab).sum(1) / den, 0.0, 1.0)
@@ -419,6 +425,12 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
     """
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
     h, w_img = mask.shape
+    # Every curve's segments, stacked once, for the clearance test.
+    seg_a = [c["points"][:-1] if len(c["points"]) > 1 else c["points"] for c in curves]
+    seg_b = [c["points"][1:] if len(c["points"]) > 1 else c["points"] for c in curves]
+    owner = np.repeat(np.arange(len(curves)), [len(a) for a in seg_a])
+    seg_a = np.concatenate(seg_a) if curves else np.zeros((0, 2))
+    seg_b = np.concatenate(seg_b) if curves else np.zeros((0, 2))
     adds = []
     for i, c in enumerate(curves):
         w = float(c.get("width") or 0.0)
@@ -445,8 +457,9 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             pts = c["points"] if e == 0 else c["points"][::-1]
             arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
             own = pts[arc > 2.0 * ln]
-            near = min([_distance_to_polyline(tip, o["points"]) for q, o in enumerate(curves) if q != i]
-                       + ([_distance_to_polyline(tip, own)] if len(own) else []), default=np.inf)
+            others = owner != i
+            near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
+                       _distance_to_polyline(tip, own) if len(own) else np.inf)
             if near < clearance * ln:
                 continue
             ext[e] = (tip, ln)
@@ -599,8 +612,16 @@ def _fmt(v: float, precision: int) -> str:
     return "0" if s in ("-0", "") else s
 
 
+def _fmt_many(values: np.ndarray, precision: int) -> list[str]:
+    """:func:`_fmt` of many numbers (rounded once with numpy, then one format call per number)."""
+    v = np.round(np.asarray(values, np.float64), precision) + 0.0          # + 0.0: no "-0"
+    return [_fmt(x, precision) for x in v.tolist()] if precision else [str(int(x)) for x in v.tolist()]
+
+
 def _polyline_d(points: np.ndarray, precision: int) -> str:
-    coords = [f"{_fmt(x, precision)} {_fmt(y, precision)}" for x, y in points]
+    pts = np.asarray(points, np.float64)
+    xs, ys = _fmt_many(pts[:, 0], precision), _fmt_many(pts[:, 1], precision)
+    coords = [f"{x} {y}" for x, y in zip(xs, ys)]
     return "M " + coords[0] + "".join(" L " + c for c in coords[1:])
 
 
