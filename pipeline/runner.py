@@ -277,12 +277,40 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             pending.append(todo_final)
 
     if pending:
-        if runtime.get("cluster", "local") == "sync":
+        if cluster_mode(runtime, pending) == "sync":
             _run_sync(pending, store.url, batch, report)
         else:
             _run_dask(pending, store.url, batch, report, get_client(runtime))
     batch.wall_s = time.perf_counter() - t0
     return batch
+
+
+def _upstream(stage: str) -> set[str]:
+    out, todo = set(), list(BY_NAME[stage].inputs)
+    while todo:
+        s = todo.pop()
+        if s not in out:
+            out.add(s)
+            todo.extend(BY_NAME[s].inputs)
+    return out
+
+
+def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
+    """``sync`` or ``local`` (dask) for this batch's pending tasks.
+
+    ``runtime.cluster: auto`` runs in-process when nothing could run at the same time — the pending
+    tasks belong to one image and form a chain, as in a λ or time-step re-run (flow → select →
+    export) — because starting worker processes costs seconds and gains nothing there; otherwise, and
+    always with a ``scheduler_address``, it uses dask.
+    """
+    mode = runtime.get("cluster", "local")
+    if mode != "auto":
+        return mode
+    if runtime.get("scheduler_address") or len(pending) > 1:
+        return "local"
+    names = [t.stage for t in pending[0]] if pending else []
+    chain = all(a in _upstream(b) or b in _upstream(a) for i, a in enumerate(names) for b in names[i + 1:])
+    return "sync" if chain else "local"
 
 
 def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:

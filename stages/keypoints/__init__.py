@@ -20,14 +20,15 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from stages.artifact import Artifact
 from stages.errors import InputError
-from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
-from stages.keypoints.network import KeypointNet, NetConfig
-from stages.keypoints.targets import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
+
+# torch and the modules that need it are imported inside load_model/run: the engine imports every
+# stage module to read STAGE_VERSION when it plans a batch, and a re-run where this stage is a cache
+# hit (a λ sweep) should not pay ~2 s for importing torch.
+TYPE_CODES = (1, 3, 5)  # endpoint, junction, sharp corner (= stages.keypoints.targets.TYPE_CODES)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 PACKAGED_WEIGHTS = WEIGHTS_DIR / "keypoints.pt"
@@ -42,10 +43,7 @@ def _file_hash(path: Path) -> str:
 
 STAGE_VERSION = "2+" + _file_hash(PACKAGED_WEIGHTS) + "+" + _file_hash(PACKAGED_TYPE_CLASSIFIER)
 
-_MODELS: dict[str, tuple[KeypointNet, str]] = {}
-
-# The architecture used when no weights file exists yet (random weights: results are meaningless).
-_UNTRAINED_CONFIG = NetConfig()
+_MODELS: dict[str, tuple["KeypointNet", str]] = {}
 
 
 def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
@@ -64,6 +62,10 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     name : str
         ``<file name>@<sha256 prefix>`` (``untrained`` when no weights file exists).
     """
+    import torch
+
+    from stages.keypoints.network import KeypointNet, NetConfig
+
     path = PACKAGED_WEIGHTS if weights in (None, "", "packaged") else Path(weights)
     key = str(path)
     if key in _MODELS:
@@ -71,8 +73,8 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     if not path.is_file():
         if path != PACKAGED_WEIGHTS:
             raise InputError(f"keypoints.weights: no such file {path}")
-        torch.manual_seed(0)
-        model, name = KeypointNet(_UNTRAINED_CONFIG), "untrained"
+        torch.manual_seed(0)  # the default architecture, random weights: results are meaningless
+        model, name = KeypointNet(NetConfig()), "untrained"
     else:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
@@ -120,6 +122,12 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         dilated band when ``restrict_to_band``; ``points`` float32
         (N, 2) (x, y); ``types`` int8 (N,); ``scores`` float32 (N,); data ``points`` and ``weights``.
     """
+    import torch
+
+    from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
+
+    if cfg["typing"] not in ("valence", "argmax"):
+        raise InputError(f"keypoints.typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
     torch.set_num_threads(int(cfg["torch_threads"]))
     grey = np.asarray(prep["grey"], np.float32)
     if grey.ndim != 2 or min(grey.shape) < 1:
@@ -138,8 +146,6 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         clf = load_type_classifier(cfg["type_classifier"])
         feats = valence_features(np.asarray(prep["mask"], bool), points, class_scores_at(heatmaps, points))
         types = np.asarray(TYPE_CODES, np.int8)[clf.predict(feats)]
-    elif cfg["typing"] not in ("valence", "argmax"):
-        raise InputError(f"keypoints.typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,

@@ -122,3 +122,22 @@ def test_until_and_unknown_stage():
     assert [s.name for s in active_stages("field")] == ["prep", "field"]
     with pytest.raises(ValueError, match="unknown stage"):
         active_stages("nonsense")
+
+
+def test_auto_cluster_runs_a_chain_in_process_and_parallel_work_on_dask():
+    from types import SimpleNamespace
+
+    from pipeline.runner import cluster_mode
+
+    def tasks(*stages):
+        return [SimpleNamespace(stage=s) for s in stages]
+
+    auto = {"cluster": "auto", "scheduler_address": None}
+    # A λ re-run of one image: flow → select → export is a chain, nothing can run side by side.
+    assert cluster_mode(auto, [tasks("flow", "select", "export")]) == "sync"
+    # A first run of one image: keypoints and field are independent, two workers help.
+    assert cluster_mode(auto, [tasks("prep", "keypoints", "field", "graph")]) == "local"
+    assert cluster_mode(auto, [tasks("flow"), tasks("flow")]) == "local"  # two images
+    assert cluster_mode(auto | {"scheduler_address": "tcp://h:1"}, [tasks("flow")]) == "local"
+    assert cluster_mode({"cluster": "sync"}, [tasks("prep", "keypoints", "field")]) == "sync"
+    assert cluster_mode({"cluster": "local"}, [tasks("flow")]) == "local"
