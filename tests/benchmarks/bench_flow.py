@@ -7,7 +7,7 @@ Usage::
 Cases (default: all available):
 
 * ``many-paths``: a 500×714 synthetic drawing of ``--paths`` random smooth strokes 25–100 px long
-  (so 50–200 flow vertices each at the default 0.5 px spacing), its real prep and field, and one
+  (so 33–133 flow vertices each at the default 0.75 px spacing), its real prep and field, and one
   candidate path per stroke: the stroke's centre line sampled every pixel with 0.4 px of noise, as
   the traced graph gives it;
 * ``example``: the authors' pencil dog with the authors' keypoints (``../shared/data/authors_example``);
