@@ -12,7 +12,8 @@ b19-frame-field-and-graph.md §A.2–A.3, authors-implementation.md §4):
 3. :mod:`~stages.graph.cleanup` — merge near-duplicate vertices, trim dangling branches into
    singularities, drop insignificant components, contract thickness loops (≤ 4 enclosed background
    pixels; real holes stay), prune spurs inside the stroke and hooked tips, join dangling ends across
-   singularities (Y junctions), smooth the widths by one sparse least-squares solve.
+   singularities (Y junctions), cut ends back that lie inside another component's stroke (T stems
+   overshooting the bar, tip fragments), smooth the widths by one sparse least-squares solve.
 
 Choices, in short (each module's docstring has the reasons and measurements):
 
@@ -31,6 +32,10 @@ Choices, in short (each module's docstring has the reasons and measurements):
   (``removeBranchesFilter1``) and joins across singularities (``connectStuffAroundSingularities``);
   plus trimming of sideways-hooked tips at rounded stroke ends.  Without them a straight stroke's tip
   and a Y junction do not come out as a path and a valence-3 vertex.
+* **Ends inside another stroke** (:func:`~stages.graph.cleanup.trim_covered_ends`, not in the
+  references): a T stem's chain runs on across the bar to its far edge, and rounded tips trace as
+  tiny separate components; both made spurious junctions on realvec_dev.  Such ends are cut back
+  onto the other stroke's centre line, such fragments dropped.
 * Components are dropped by width-padded bounding-box area only (the reference's "no vertex crosses
   two streamlines" rule deletes one-pixel-wide axis-aligned strokes).
 
@@ -55,7 +60,7 @@ from stages.graph.cross_section import RawGraph, build_cross_sections, streamlin
 from stages.graph.render import render_graph
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
-STAGE_VERSION = "1"
+STAGE_VERSION = "2"
 
 __all__ = ["STAGE_VERSION", "GraphConfig", "run", "build_graph", "render_graph"]
 
@@ -107,6 +112,7 @@ class CleanupConfig:
     spur_max_length: float
     spur_min_covered: float
     tip_hook_angle: float
+    cover_margin: float
     join_singular_distance: float
     join_singular_min_hops: int
 
@@ -242,6 +248,10 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
         added = np.zeros((0, 2), np.int64)
     stats["singular_joins"] = int(len(added))
     edges = np.concatenate([edges, added]).astype(np.int64)
+    # 6b. ends inside other components' strokes (after the joins: a Y's pieces are one component by now)
+    edges, n_cov = cleanup.trim_covered_ends(xy, width, edges, cc.spur_max_length, cc.spur_min_covered,
+                                             cc.cover_margin)
+    stats["covered_ends_trimmed"] = n_cov
     edges = _drop_small(xy, width, edges, cc.min_component_area)
     deg = np.bincount(edges.ravel(), minlength=len(xy))
     final = np.flatnonzero(deg > 0)

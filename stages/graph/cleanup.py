@@ -29,6 +29,27 @@ Steps, in the order :func:`stages.graph.run` applies them:
    dangling branches lying inside the stroke discs of the rest of the graph go, one per junction per
    round.  This is what leaves a straight stroke's ragged tip as a path end instead of a fork.
 6. :func:`trim_hooked_tips` — leaves that hook sideways inside their neighbour's disc (rounded tips).
+6b. :func:`trim_covered_ends` (run after step 7, so that the pieces of a Y are joined first) — ink
+   of *another* stroke is not a stroke end (not in the references).
+   Where one stroke meets another (a T), the field inside the bar is a cross whose normal root
+   continues the stem, so the stem's streamlines run on across the bar to its far edge: the stem's
+   chain overshoots the junction by the bar's half width and ends on the far side (synthetic T,
+   width 3–5: 1.5–2.8 px beyond the bar's centre line).  Likewise a stroke's rounded tip often traces
+   as a separate tiny component lying inside the stroke's own discs.  On realvec_dev such ends were
+   the largest group of spurious junctions with no ground-truth counterpart (a stem end sticking out
+   of the bar, a stroke split at a synthetic end next to its endpoint).  So: a dangling run of
+   vertices that all lie inside the discs (radius ``max(width/2, 0.5) + cover_margin``) of vertices
+   of *other* components is cut back to its vertex nearest those vertices (a stem then ends on the
+   bar's centre line), if the run is at most ``spur_max_length`` long (longer runs are overlapping
+   strokes, left alone); a whole component of at most that length with at least ``spur_min_covered``
+   of its vertices so covered by *longer* components is thickness of the other stroke and goes (two
+   short components crossing inside a filled blob cover each other; only the shorter goes —
+   deleting both cost a filled eye of cr_test_199_pencil its only curves, Hausdorff 7 → 11 px).
+   Tried and dropped: cutting only inside the other stroke's *interior* (covering vertices farther
+   than their width from its tips, to spare vee tips traced as two components) — realvec_dev
+   junction F1 0.857 → 0.845 with no Hausdorff gain.  Known cost: where the arms of a sharp corner
+   or vee were traced as two components, the cut can take the tip (cr_test_228_clean, lion_01_pencil:
+   Hausdorff 3.6 → 6.7 and 4.0 → 5.7 px).
 7. :func:`join_singular_ends` — B19's ``connectStuffAroundSingularities`` (not in the authors' code):
    traces stop at the singularity of a Y junction; joining the dangling end there to the other
    branches gives the Y its valence-3 vertex (edges with ``edge_curve`` −1).
@@ -563,3 +584,102 @@ def trim_hooked_tips(xy, width, edges, min_angle_deg):
         removed += 1
         todo.append(u)
     return _edges_from_adj(adj), removed
+
+
+def _other_component_cover(xy, width, labels, margin, rank=None, coverers=None):
+    """Per vertex: distance to the nearest vertex of another component whose disc contains it (inf if none).
+
+    With ``rank`` (per component), only components of higher rank count as covering; with
+    ``coverers`` (bool per vertex), only those vertices do.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xy)
+    out = np.full(n, np.inf)
+    if n == 0:
+        return out
+    radius = np.maximum(width / 2, 0.5) + margin
+    # each vertex u covers the vertices within its own radius
+    near = cKDTree(xy).query_ball_point(xy, radius)
+    lens = np.fromiter((len(q) for q in near), np.int64, count=n)
+    if lens.sum() == 0:
+        return out
+    v = np.concatenate([np.asarray(q, np.int64) for q in near])
+    u = np.repeat(np.arange(n), lens)
+    d = np.hypot(*(xy[u] - xy[v]).T)
+    ok = labels[u] != labels[v]
+    if rank is not None:
+        ok &= rank[labels[u]] > rank[labels[v]]
+    if coverers is not None:
+        ok &= coverers[u]
+    np.minimum.at(out, v[ok], d[ok])
+    return out
+
+
+def trim_covered_ends(xy, width, edges, max_length, min_covered, margin):
+    """Cut dangling ends and drop small components lying inside other components' strokes.
+
+    Module docstring, step 6b.  Parameters as :func:`prune_covered_spurs`, plus ``margin`` (px)
+    added to the disc radius ``max(width/2, 0.5)``.
+
+    Returns
+    -------
+    edges : numpy.ndarray
+        Remaining edges.
+    trimmed : int
+        Number of ends cut back plus components dropped.
+    """
+    n = len(xy)
+    if n == 0 or len(edges) == 0:
+        return edges, 0
+    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, labels = csgraph.connected_components(g, directed=False)
+    adj = _adjacency(n, edges)
+    deg = np.array([len(a) for a in adj])
+    # vertices left without edges by the earlier steps (pruned spurs) cover nothing
+    cover = _other_component_cover(xy, width, labels, margin, coverers=deg > 0)
+    covered = np.isfinite(cover)
+    if not covered.any():
+        return edges, 0
+    trimmed = 0
+    # Whole components that are thickness of a *longer* one (two short components crossing inside a
+    # filled blob cover each other: only the shorter goes).
+    seg = np.hypot(*(xy[edges[:, 0]] - xy[edges[:, 1]]).T)
+    comp_len = np.bincount(labels[edges[:, 0]], weights=seg, minlength=labels.max() + 1)
+    rank = np.empty(len(comp_len), np.int64)
+    rank[np.lexsort((np.arange(len(comp_len)), comp_len))] = np.arange(len(comp_len))
+    by_longer = np.isfinite(_other_component_cover(xy, width, labels, margin, rank, coverers=deg > 0))
+    has = deg > 0
+    n_all = np.bincount(labels[has], minlength=labels.max() + 1)
+    n_cov = np.bincount(labels[has & by_longer], minlength=labels.max() + 1)
+    drop = (comp_len <= max_length) & (n_all > 0) & (n_cov >= min_covered * n_all)
+    for v in np.flatnonzero(drop[labels] & has):
+        for u in list(adj[v]):
+            adj[u].discard(v)
+        adj[v].clear()
+    trimmed += int(drop.sum())
+    if drop.any():
+        # what covers the ends is what remains
+        cover = _other_component_cover(xy, width, labels, margin, coverers=np.array([len(a) > 0 for a in adj]))
+        covered = np.isfinite(cover)
+    # dangling runs inside another component's stroke: cut back to the vertex nearest to it
+    for v in range(n):
+        if len(adj[v]) != 1 or not covered[v]:
+            continue
+        run, length = [v], 0.0
+        prev, cur = v, next(iter(adj[v]))
+        while covered[cur] and len(adj[cur]) == 2:
+            length += float(np.hypot(*(xy[cur] - xy[prev])))
+            run.append(cur)
+            prev, cur = cur, next(u for u in adj[cur] if u != prev)
+        if length > max_length or len(run) < 2:
+            continue
+        keep = run[int(np.argmin(cover[run]))]
+        if keep == v:
+            continue
+        k = run.index(keep)
+        for a, b in zip(run[:k], run[1:k + 1]):
+            adj[a].discard(b)
+            adj[b].discard(a)
+        trimmed += 1
+    return _edges_from_adj(adj), trimmed

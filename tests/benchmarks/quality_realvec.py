@@ -17,7 +17,8 @@ strokes, both drawn with the benchmark's normalised thin stroke (F1 at 2 and 4 /
 edge, F1 at 1 px, Chamfer, Hausdorff converted to px), and the valence topology (endpoint F1,
 junction F1, short dangling branches per drawing) with the bench's tolerances
 (``conf/bench/default.yaml``).  Prints medians and means overall and per style (clean / pencil), the
-targets of issue 6, and the worst cases.
+targets of issue 6, the topology errors broken down by what lies at them (:func:`error_breakdown`:
+e.g. junctions where the ground truth has a corner), and the worst cases.
 
 Every stage's artifact is cached under ``/tmp/polyvec-quality/<case>/<stage>-<key>.pkl``; the key
 hashes the stage's source files, its config and the keys of its inputs, so editing a downstream stage
@@ -207,11 +208,48 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
         row["chamfer_px"] = m["chamfer"] * long_edge
         row["hausdorff_px"] = m["hausdorff"] * long_edge
         w = float(case["width"])
-        row.update(compare_topology(extract_topology(curves, w, tp), extract_topology(strokes, w, tp), w, tp))
+        topo_o, topo_g = extract_topology(curves, w, tp), extract_topology(strokes, w, tp)
+        row.update(compare_topology(topo_o, topo_g, w, tp))
+        row.update(error_breakdown(topo_o, topo_g, case, w, tp))
     except Exception as e:                                          # one case must not sink the run
         row["error"] = f"{type(e).__name__}: {e}"
         row["traceback"] = traceback.format_exc()
     return row
+
+
+ERROR_CLASSES = ("junction_fp", "endpoint_fp", "junction_fn", "endpoint_fn")
+
+
+def error_breakdown(topo_o, topo_g, case: dict, width: float, tp) -> dict:
+    """Unmatched junctions / free ends, each labelled by what lies within the matching radius.
+
+    False positives (output points without a GT partner) get the GT keypoint types there
+    (``E``/``J``/``C``, or ``-`` for none): a junction FP at ``C`` is a corner where three or more
+    curve ends met, at ``E`` a stroke end that touches another curve.  False negatives (GT points
+    without an output partner) get what the output has there: ``oJ`` junction, ``oC`` continuation,
+    ``oF`` free end, ``-`` nothing.  Returned as ``err_<kind>_<label>`` counts.
+    """
+    from stages.evaluate.matching import match_one_to_one
+
+    radius = max(tp.match_min_px, width)
+    kps = {t: np.asarray(case.get(k, []), np.float64).reshape(-1, 2)
+           for k, t in (("endpoints", "E"), ("junctions", "J"), ("corners", "C"))}
+    out_pts = {"oJ": topo_o.junctions, "oC": topo_o.continuations, "oF": topo_o.free_ends}
+
+    def near(p, pts):
+        return len(pts) > 0 and float(np.min(np.hypot(*(np.asarray(pts) - p).T))) <= radius
+
+    counts: dict[str, int] = {}
+    for kind, a, b in (("junction", topo_o.junctions, topo_g.junctions), ("endpoint", topo_o.free_ends,
+                                                                          topo_g.free_ends)):
+        m = match_one_to_one(a, b, radius)
+        for i in np.setdiff1d(np.arange(len(a)), m[:, 0]):
+            lab = "".join(t for t, pts in kps.items() if near(a[i], pts)) or "-"
+            counts[f"err_{kind}_fp_{lab}"] = counts.get(f"err_{kind}_fp_{lab}", 0) + 1
+        for j in np.setdiff1d(np.arange(len(b)), m[:, 1]):
+            lab = "".join(t for t, pts in out_pts.items() if near(b[j], pts)) or "-"
+            counts[f"err_{kind}_fn_{lab}"] = counts.get(f"err_{kind}_fn_{lab}", 0) + 1
+    return counts
 
 
 def _worker(args):
@@ -254,6 +292,16 @@ def print_report(rows: list[dict], worst: int) -> None:
     print(f"  {'dangling':<14} {got:8.4f} <= 0.2    {'ok' if got <= 0.2 else 'MISSED'}")
     for err in [r for r in rows if r["error"]]:
         print(f"  ERROR {err['name']}: {err['error']}")
+    tot: dict[str, int] = {}
+    for r in rows:
+        for k, v in r.items():
+            if k.startswith("err_"):
+                tot[k] = tot.get(k, 0) + v
+    print("\ntopology errors by what lies there (FP: GT keypoints E/J/C; FN: output oJ/oC/oF; - none):")
+    for kind in ERROR_CLASSES:
+        items = sorted(((v, k[len(f"err_{kind}_"):]) for k, v in tot.items() if k.startswith(f"err_{kind}_")),
+                       reverse=True)
+        print(f"  {kind:<12} " + ", ".join(f"{lab} {v}" for v, lab in items))
     ok = [r for r in rows if not r["error"]]
     for col, rev in (("f1_2", False), ("hausdorff_px", True), ("endpoint_f1", False), ("junction_f1", False),
                      ("dangling", True)):

@@ -156,6 +156,55 @@ def test_t_junction_gives_two_components():
     assert np.linalg.norm(a["vertex_xy"][stem_comp] - stem[0], axis=1).min() <= 1.5
 
 
+@pytest.mark.parametrize("width", [3.0, 5.0])
+@pytest.mark.parametrize("angle", [0.0, 17.0, 40.0])
+def test_t_stem_ends_on_the_bar_centre_line_not_beyond_it(angle, width):
+    """Inside the bar the field's normal root continues the stem, so the stem's chain used to run on
+    to the bar's far edge (1.5–2.8 px beyond its centre line); the covered end is cut back."""
+    drawing = synthetic.tee(angle=angle, width=width)
+    a = _graph(*_inputs("tee", angle=angle, width=width))
+    g = _nx(a)
+    bar, stem = drawing.strokes
+    xy = a["vertex_xy"]
+    leaves = [v for v, d in g.degree() if d == 1]
+    stem_end = min(leaves, key=lambda v: np.linalg.norm(xy[v] - stem[0]))
+    along, across = _line_frame(bar, xy[stem_end:stem_end + 1])
+    # the stem lies on the positive side of the bar (y down, stem at angle + 90°)
+    assert -0.75 <= across[0] <= 1.5
+
+
+def test_covered_tip_fragment_is_dropped_and_a_separate_stroke_kept():
+    """A tiny component inside another stroke's discs is that stroke's thickness (a rounded tip
+    traced apart); one outside them is a stroke of its own."""
+    from stages.graph.cleanup import trim_covered_ends
+
+    main = np.stack([np.arange(0.0, 20.0), np.full(20, 10.0)], axis=1)          # width 4, ends at x = 19
+    frag = np.array([[18.5, 11.0], [19.5, 10.5], [20.3, 10.0]])                  # inside its discs
+    far = np.array([[10.0, 16.0], [11.0, 16.0], [12.0, 16.0]])                   # 6 px away: kept
+    xy = np.concatenate([main, frag, far])
+    width = np.full(len(xy), 4.0)
+    e = [(k, k + 1) for k in range(19)] + [(20, 21), (21, 22), (23, 24), (24, 25)]
+    edges, n = trim_covered_ends(xy, width, np.array(e), max_length=10.0, min_covered=0.75, margin=0.5)
+    left = set(edges.ravel().tolist())
+    assert n == 1
+    assert not left & {20, 21, 22}
+    assert {23, 24, 25} <= left and set(range(20)) <= left
+
+
+def test_two_short_components_covering_each_other_keep_the_longer():
+    """Inside a small filled blob the two field families trace two short crossing components, each
+    in the other's discs: only the shorter goes (deleting both left the blob without a curve)."""
+    from stages.graph.cleanup import trim_covered_ends
+
+    a = np.stack([np.arange(0.0, 6.0), np.full(6, 3.0)], axis=1)
+    b = np.stack([np.full(7, 2.6), np.arange(0.2, 7.2)], axis=1)
+    xy = np.concatenate([a, b])
+    width = np.full(len(xy), 7.0)
+    e = [(k, k + 1) for k in range(5)] + [(k, k + 1) for k in range(6, 12)]
+    edges, _ = trim_covered_ends(xy, width, np.array(e), max_length=10.0, min_covered=0.75, margin=0.5)
+    assert set(edges.ravel().tolist()) == set(range(6, 13))
+
+
 def test_y_junction_has_one_valence_three_vertex_near_its_centre():
     a = _graph(*_inputs("wye"))
     g = _nx(a)
