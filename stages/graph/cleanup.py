@@ -45,7 +45,9 @@ Steps, in the order :func:`stages.graph.run` applies them:
    of its vertices so covered by *longer* components is thickness of the other stroke and goes (two
    short components crossing inside a filled blob cover each other; only the shorter goes —
    deleting both cost a filled eye of cr_test_199_pencil its only curves, Hausdorff 7 → 11 px).
-   Tried and dropped: cutting only inside the other stroke's *interior* (covering vertices farther
+   Tried and dropped: joining two components whose tips lie in each other's strokes (an L traced
+   as two families) instead of cutting both — junction F1 0.857 → 0.853, dangling 0.54 → 0.53,
+   Hausdorff unchanged; and cutting only inside the other stroke's *interior* (covering vertices farther
    than their width from its tips, to spare vee tips traced as two components) — realvec_dev
    junction F1 0.857 → 0.845 with no Hausdorff gain.  Known cost: where the arms of a sharp corner
    or vee were traced as two components, the cut can take the tip (cr_test_228_clean, lion_01_pencil:
