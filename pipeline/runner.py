@@ -15,6 +15,7 @@ import socket
 import sys
 import time
 import traceback
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -141,6 +142,36 @@ def _pin_threads() -> None:
         sys.modules["numba"].set_num_threads(1)
 
 
+# Artifacts recently loaded or written by this process, by (stage, key). They are immutable (a key
+# names its content), so a chain of stages in one process — a λ re-run in-process, or a worker that
+# gets an image's next stage — reuses them instead of reading zarr and re-parsing JSON (topology's
+# paths are megabytes of JSON read by flow, select and export). Arrays are made read-only so that a
+# stage that modified its input in place would fail loudly instead of corrupting the next stage's.
+_MEMO: "OrderedDict[tuple[str, str], Any]" = OrderedDict()
+MEMO_SIZE = 12
+
+
+def _remember(stage: str, key: str, artifact) -> None:
+    for a in artifact.arrays.values():
+        if hasattr(a, "flags"):
+            a.flags.writeable = False
+    _MEMO[(stage, key)] = artifact
+    _MEMO.move_to_end((stage, key))
+    while len(_MEMO) > MEMO_SIZE:
+        _MEMO.popitem(last=False)
+
+
+def load_artifact(store: ArtifactStore, stage: str, key: str):
+    """``store.load`` through this process's memo of recent artifacts."""
+    hit = _MEMO.get((stage, key))
+    if hit is not None:
+        _MEMO.move_to_end((stage, key))
+        return hit
+    artifact = store.load(stage, key)
+    _remember(stage, key, artifact)
+    return artifact
+
+
 def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
     """Run one task in a worker: load inputs, run the stage, store the artifact."""
     from stages.errors import InputError
@@ -165,7 +196,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
                 raise InputError(f"cannot read file ({exc.strerror or exc})") from None
             kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
         else:
-            kwargs = {name: store.load(name, key) for name, key in task.inputs.items()}
+            kwargs = {name: load_artifact(store, name, key) for name, key in task.inputs.items()}
         artifact = module.run(dict(task.config), **kwargs)
         duration = time.perf_counter() - t0
         manifest = {
@@ -177,6 +208,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
             "python": sys.version.split()[0],
         }
         store.save(task.stage, task.key, artifact, manifest)
+        _remember(task.stage, task.key, artifact)
         return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration)
     except InputError as exc:
         return TaskResult(task.image, task.stage, task.key, "failed", error=str(exc),
@@ -359,7 +391,7 @@ def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Pa
         r = per.get("export")
         if r is None or r.status not in ("computed", "cached"):
             continue
-        art = store.load("export", r.key)
+        art = load_artifact(store, "export", r.key)
         stem = Path(image).stem
         name, n = stem, 1
         while name in used:

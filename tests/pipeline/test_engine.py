@@ -141,3 +141,23 @@ def test_auto_cluster_runs_a_chain_in_process_and_parallel_work_on_dask():
     assert cluster_mode(auto | {"scheduler_address": "tcp://h:1"}, [tasks("flow")]) == "local"
     assert cluster_mode({"cluster": "sync"}, [tasks("prep", "keypoints", "field")]) == "sync"
     assert cluster_mode({"cluster": "local"}, [tasks("flow")]) == "local"
+
+
+def test_artifact_memo_reuses_and_protects_loaded_artifacts(tmp_path):
+    import numpy as np
+
+    from pipeline import runner
+    from pipeline.store import ArtifactStore
+    from stages.artifact import Artifact
+
+    store = ArtifactStore(tmp_path / "store")
+    store.save("prep", "k" * 64, Artifact(arrays={"grey": np.ones((4, 4), np.float32)}, data={"n": 1}), {})
+    runner._MEMO.clear()
+    a = runner.load_artifact(store, "prep", "k" * 64)
+    assert runner.load_artifact(store, "prep", "k" * 64) is a  # the second read comes from the memo
+    with pytest.raises(ValueError):
+        a["grey"][0, 0] = 0.0  # a stage must not modify its inputs: the next stage shares them
+    for i in range(runner.MEMO_SIZE + 1):  # bounded: old artifacts are dropped
+        runner._remember("x", str(i), Artifact(arrays={}, data={}))
+    assert ("prep", "k" * 64) not in runner._MEMO and len(runner._MEMO) == runner.MEMO_SIZE
+    runner._MEMO.clear()
