@@ -147,8 +147,10 @@ def _pin_threads() -> None:
 # gets an image's next stage — reuses them instead of reading zarr and re-parsing JSON (topology's
 # paths are megabytes of JSON read by flow, select and export). Arrays are made read-only so that a
 # stage that modified its input in place would fail loudly instead of corrupting the next stage's.
+# Bounded by count and by array bytes, so a batch of large scans cannot pile up gigabytes per worker.
 _MEMO: "OrderedDict[tuple[str, str], Any]" = OrderedDict()
 MEMO_SIZE = 12
+MEMO_BYTES = 256 * 2**20
 
 
 def _remember(stage: str, key: str, artifact) -> None:
@@ -157,8 +159,10 @@ def _remember(stage: str, key: str, artifact) -> None:
             a.flags.writeable = False
     _MEMO[(stage, key)] = artifact
     _MEMO.move_to_end((stage, key))
-    while len(_MEMO) > MEMO_SIZE:
+    while len(_MEMO) > MEMO_SIZE or (len(_MEMO) > 1 and sum(a.nbytes() for a in _MEMO.values()) > MEMO_BYTES):
         _MEMO.popitem(last=False)
+    if artifact.nbytes() > MEMO_BYTES:
+        _MEMO.pop((stage, key), None)
 
 
 def load_artifact(store: ArtifactStore, stage: str, key: str):

@@ -160,4 +160,7 @@ def test_artifact_memo_reuses_and_protects_loaded_artifacts(tmp_path):
     for i in range(runner.MEMO_SIZE + 1):  # bounded: old artifacts are dropped
         runner._remember("x", str(i), Artifact(arrays={}, data={}))
     assert ("prep", "k" * 64) not in runner._MEMO and len(runner._MEMO) == runner.MEMO_SIZE
+    big = Artifact(arrays={"a": np.zeros(runner.MEMO_BYTES // 8 + 1)}, data={})
+    runner._remember("big", "b", big)  # larger than the byte budget: not kept
+    assert ("big", "b") not in runner._MEMO
     runner._MEMO.clear()
