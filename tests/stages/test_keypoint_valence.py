@@ -99,7 +99,7 @@ def _kp_cfg(**kw) -> dict:
 
 @pytest.mark.skipif(not PACKAGED_TYPE_CLASSIFIER.is_file(), reason="no shipped type classifier")
 def test_stage_types_by_valence_by_default():
-    assert _kp_cfg()["typing"] == "valence" and PACKAGED_TYPE_CLASSIFIER.name[:10] in "type_classifier.npz"
+    assert _kp_cfg()["typing"] == "valence" and _kp_cfg()["type_classifier"] == "packaged"
     d = synthetic.tee(size=96, length=70.0, width=3.0)
     prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
     a = run(_kp_cfg(), prep=prep)
