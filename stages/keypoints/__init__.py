@@ -127,7 +127,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
 
     if cfg["typing"] not in ("valence", "argmax"):
-        raise InputError(f"keypoints.typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
+        raise InputError(f"typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
     torch.set_num_threads(int(cfg["torch_threads"]))
     grey = np.asarray(prep["grey"], np.float32)
     if grey.ndim != 2 or min(grey.shape) < 1:
