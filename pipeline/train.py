@@ -584,7 +584,7 @@ def type_classifier_data(cfg: dict, count: int, seed: int) -> tuple[np.ndarray, 
     from stages import keypoints as kp_stage
     from stages import prep as prep_stage
     from stages.evaluate.keypoints import _match
-    from stages.keypoints.targets import TYPE_CODES
+    from stages.keypoints.labels import TYPE_CODES
     from stages.keypoints.valence import class_scores_at, valence_features
 
     rng = np.random.default_rng(seed)

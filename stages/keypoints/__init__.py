@@ -23,12 +23,12 @@ import numpy as np
 
 from stages.artifact import Artifact
 from stages.errors import InputError
+from stages.keypoints.labels import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
 
 # torch and the modules that need it are imported inside load_model/run: the engine imports every
 # stage module to read STAGE_VERSION when it plans a batch, and a re-run where this stage is a cache
 # hit (a λ sweep) should not pay ~2 s for importing torch.
-TYPE_CODES = (1, 3, 5)  # endpoint, junction, sharp corner (= stages.keypoints.targets.TYPE_CODES)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 PACKAGED_WEIGHTS = WEIGHTS_DIR / "keypoints.pt"

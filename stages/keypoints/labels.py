@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 ENDPOINT, JUNCTION, CORNER = 1, 3, 5
+TYPE_CODES = (ENDPOINT, JUNCTION, CORNER)  # channels 1, 2, 3 of the heatmaps, in this order
 
 
 @dataclass(frozen=True)

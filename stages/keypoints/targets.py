@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-TYPE_CODES = (1, 3, 5)  # endpoint, junction, sharp corner: channels 1, 2, 3 of the heatmaps
+from stages.keypoints.labels import TYPE_CODES
 
 
 def gaussian_heatmaps(shape: tuple[int, int], points: np.ndarray, types: np.ndarray, sigma: float) -> np.ndarray:
