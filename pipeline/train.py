@@ -412,6 +412,12 @@ def train(cfg: dict) -> dict:
 # Class branch on a frozen detector
 
 
+def _class_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
+    """Cross-entropy class weights ∝ frequency^-power (0 = none, 1 = balanced), mean 1."""
+    cw = (counts.sum() / counts.clamp_min(1)) ** power
+    return (cw / cw.mean()).float()
+
+
 def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: int
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Frozen decoder features around the keypoints of ``count`` generated drawings.
@@ -498,9 +504,7 @@ def train_class_branch(cfg: dict) -> dict:
     near &= inner
     vnear &= inner
     counts = torch.bincount(cls[near], minlength=3).double()
-    # Class weights ∝ frequency^-power (0 = plain cross-entropy, 1 = balanced classes).
-    cw = (counts.sum() / counts.clamp_min(1)) ** float(cb["balance_power"])
-    cw = (cw / cw.mean()).float()
+    cw = _class_weights(counts, float(cb["balance_power"]))
     head = model.class_head
     for mod in head.modules():
         if hasattr(mod, "reset_parameters"):
@@ -583,7 +587,7 @@ def type_classifier_data(cfg: dict, count: int, seed: int) -> tuple[np.ndarray, 
 
     from stages import keypoints as kp_stage
     from stages import prep as prep_stage
-    from stages.evaluate.keypoints import _match
+    from stages.evaluate.matching import match_one_to_one
     from stages.keypoints.labels import TYPE_CODES
     from stages.keypoints.valence import class_scores_at, valence_features
 
@@ -604,9 +608,10 @@ def type_classifier_data(cfg: dict, count: int, seed: int) -> tuple[np.ndarray, 
             continue
         k = kp_stage.run(kcfg, prep=p)
         pts = np.asarray(k["points"])
-        gi, pi = _match(s.points, pts, 5.0)
-        if not len(gi):
+        pairs = match_one_to_one(pts, s.points, 5.0)
+        if not len(pairs):
             continue
+        pi, gi = pairs[:, 0], pairs[:, 1]
         feats.append(valence_features(np.asarray(p["mask"]), pts[pi], class_scores_at(np.asarray(k["heatmaps"]), pts[pi])))
         labels.append([TYPE_CODES.index(int(t)) for t in s.types[gi]])
     return np.concatenate(feats).astype(np.float32), np.concatenate(labels).astype(np.int64)
@@ -633,9 +638,7 @@ def fit_type_classifier(features: np.ndarray, labels: np.ndarray, tc: dict):
     std = features.std(0) + 1e-6
     x = torch.tensor((features - mean) / std, dtype=torch.float32)
     y = torch.tensor(labels)
-    counts = torch.bincount(y, minlength=3).double()
-    cw = ((counts.sum() / counts.clamp_min(1)) ** float(tc["balance_power"]))
-    cw = (cw / cw.mean()).float()
+    cw = _class_weights(torch.bincount(y, minlength=3).double(), float(tc["balance_power"]))
     net = torch.nn.Sequential(torch.nn.Linear(x.shape[1], int(tc["hidden"])), torch.nn.ReLU(),
                               torch.nn.Linear(int(tc["hidden"]), 3))
     opt = torch.optim.Adam(net.parameters(), lr=float(tc["lr"]), weight_decay=float(tc["weight_decay"]))
