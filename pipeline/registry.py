@@ -78,6 +78,18 @@ def is_implemented(spec: StageSpec) -> bool:
     return hasattr(mod, "run") and hasattr(mod, "STAGE_VERSION")
 
 
+def ancestors(name: str) -> set[str]:
+    """All stages whose artifacts ``name`` depends on, directly or through others."""
+    out: set[str] = set()
+    todo = list(BY_NAME[name].inputs)
+    while todo:
+        s = todo.pop()
+        if s not in out:
+            out.add(s)
+            todo.extend(BY_NAME[s].inputs)
+    return out
+
+
 def active_stages(until: str | None = None) -> list[StageSpec]:
     """Stages to run, in topological order.
 
@@ -92,13 +104,7 @@ def active_stages(until: str | None = None) -> list[StageSpec]:
     if until:
         if until not in BY_NAME:
             raise ValueError(f"unknown stage {until!r}; stages: {', '.join(BY_NAME)}")
-        wanted = set()
-        todo = [until]
-        while todo:
-            name = todo.pop()
-            if name not in wanted:
-                wanted.add(name)
-                todo.extend(BY_NAME[name].inputs)
+        wanted = {until} | ancestors(until)
     out: list[StageSpec] = []
     have: set[str] = set()
     for spec in STAGES:

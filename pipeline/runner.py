@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pipeline.registry import BY_NAME, StageSpec, active_stages
+from pipeline.registry import BY_NAME, StageSpec, active_stages, ancestors
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, library_versions
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -157,12 +157,13 @@ def _remember(stage: str, key: str, artifact) -> None:
     for a in artifact.arrays.values():
         if hasattr(a, "flags"):
             a.flags.writeable = False
+    if artifact.nbytes() > MEMO_BYTES:
+        return
     _MEMO[(stage, key)] = artifact
     _MEMO.move_to_end((stage, key))
-    while len(_MEMO) > MEMO_SIZE or (len(_MEMO) > 1 and sum(a.nbytes() for a in _MEMO.values()) > MEMO_BYTES):
-        _MEMO.popitem(last=False)
-    if artifact.nbytes() > MEMO_BYTES:
-        _MEMO.pop((stage, key), None)
+    total = sum(a.nbytes() for a in _MEMO.values())
+    while len(_MEMO) > MEMO_SIZE or total > MEMO_BYTES:
+        total -= _MEMO.popitem(last=False)[1].nbytes()
 
 
 def load_artifact(store: ArtifactStore, stage: str, key: str):
@@ -321,16 +322,6 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     return batch
 
 
-def _upstream(stage: str) -> set[str]:
-    out, todo = set(), list(BY_NAME[stage].inputs)
-    while todo:
-        s = todo.pop()
-        if s not in out:
-            out.add(s)
-            todo.extend(BY_NAME[s].inputs)
-    return out
-
-
 def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     """``sync`` or ``local`` (dask) for this batch's pending tasks.
 
@@ -345,7 +336,7 @@ def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     if runtime.get("scheduler_address") or len(pending) > 1:
         return "local"
     names = [t.stage for t in pending[0]] if pending else []
-    chain = all(a in _upstream(b) or b in _upstream(a) for i, a in enumerate(names) for b in names[i + 1:])
+    chain = all(a in ancestors(b) or b in ancestors(a) for i, a in enumerate(names) for b in names[i + 1:])
     return "sync" if chain else "local"
 
 
