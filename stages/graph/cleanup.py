@@ -85,6 +85,12 @@ def _adjacency(n: int, edges: np.ndarray) -> list[set]:
     return adj
 
 
+def _components(n: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
+    """Number of connected components of the graph and each vertex's component label."""
+    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return csgraph.connected_components(g, directed=False)
+
+
 def _edges_from_adj(adj: list[set]) -> np.ndarray:
     out = [(a, b) for a, nb in enumerate(adj) for b in nb if a < b]
     return np.array(out, dtype=np.int64).reshape(-1, 2)
@@ -198,8 +204,7 @@ def remove_small_components(xy, width, edges, min_area) -> np.ndarray:
     n = len(xy)
     if n == 0:
         return np.zeros(0, bool)
-    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    ncomp, lab = csgraph.connected_components(g, directed=False)
+    ncomp, lab = _components(n, edges)
     r = np.maximum(width / 2, 0.5)
     lo_x = np.full(ncomp, np.inf); hi_x = np.full(ncomp, -np.inf)
     lo_y = np.full(ncomp, np.inf); hi_y = np.full(ncomp, -np.inf)
@@ -588,32 +593,30 @@ def trim_hooked_tips(xy, width, edges, min_angle_deg):
     return _edges_from_adj(adj), removed
 
 
-def _other_component_cover(xy, width, labels, margin, rank=None, coverers=None):
-    """Per vertex: distance to the nearest vertex of another component whose disc contains it (inf if none).
+def _cover_pairs(xy, width, labels, margin):
+    """Pairs (u, v, distance) of vertices of different components with v inside u's disc.
 
-    With ``rank`` (per component), only components of higher rank count as covering; with
-    ``coverers`` (bool per vertex), only those vertices do.
+    The disc radius is ``max(width/2, 0.5) + margin`` of the covering vertex u.
     """
     from scipy.spatial import cKDTree
 
     n = len(xy)
-    out = np.full(n, np.inf)
-    if n == 0:
-        return out
     radius = np.maximum(width / 2, 0.5) + margin
-    # each vertex u covers the vertices within its own radius
     near = cKDTree(xy).query_ball_point(xy, radius)
     lens = np.fromiter((len(q) for q in near), np.int64, count=n)
     if lens.sum() == 0:
-        return out
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     v = np.concatenate([np.asarray(q, np.int64) for q in near])
     u = np.repeat(np.arange(n), lens)
-    d = np.hypot(*(xy[u] - xy[v]).T)
-    ok = labels[u] != labels[v]
-    if rank is not None:
-        ok &= rank[labels[u]] > rank[labels[v]]
-    if coverers is not None:
-        ok &= coverers[u]
+    other = labels[u] != labels[v]
+    u, v = u[other], v[other]
+    return u, v, np.hypot(*(xy[u] - xy[v]).T)
+
+
+def _cover_distance(n, pairs, ok):
+    """Per vertex: distance to the nearest covering vertex among the pairs with ``ok`` (inf if none)."""
+    u, v, d = pairs
+    out = np.full(n, np.inf)
     np.minimum.at(out, v[ok], d[ok])
     return out
 
@@ -634,12 +637,13 @@ def trim_covered_ends(xy, width, edges, max_length, min_covered, margin):
     n = len(xy)
     if n == 0 or len(edges) == 0:
         return edges, 0
-    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, labels = csgraph.connected_components(g, directed=False)
+    _, labels = _components(n, edges)
     adj = _adjacency(n, edges)
-    deg = np.array([len(a) for a in adj])
-    # vertices left without edges by the earlier steps (pruned spurs) cover nothing
-    cover = _other_component_cover(xy, width, labels, margin, coverers=deg > 0)
+    has = np.array([len(a) > 0 for a in adj])
+    # One neighbour query serves every cover test below; vertices left without edges by the earlier
+    # steps (pruned spurs) cover nothing.
+    pairs = _cover_pairs(xy, width, labels, margin)
+    cover = _cover_distance(n, pairs, has[pairs[0]])
     covered = np.isfinite(cover)
     if not covered.any():
         return edges, 0
@@ -650,8 +654,8 @@ def trim_covered_ends(xy, width, edges, max_length, min_covered, margin):
     comp_len = np.bincount(labels[edges[:, 0]], weights=seg, minlength=labels.max() + 1)
     rank = np.empty(len(comp_len), np.int64)
     rank[np.lexsort((np.arange(len(comp_len)), comp_len))] = np.arange(len(comp_len))
-    by_longer = np.isfinite(_other_component_cover(xy, width, labels, margin, rank, coverers=deg > 0))
-    has = deg > 0
+    u, v, _ = pairs
+    by_longer = np.isfinite(_cover_distance(n, pairs, has[u] & (rank[labels[u]] > rank[labels[v]])))
     n_all = np.bincount(labels[has], minlength=labels.max() + 1)
     n_cov = np.bincount(labels[has & by_longer], minlength=labels.max() + 1)
     drop = (comp_len <= max_length) & (n_all > 0) & (n_cov >= min_covered * n_all)
@@ -662,7 +666,8 @@ def trim_covered_ends(xy, width, edges, max_length, min_covered, margin):
     trimmed += int(drop.sum())
     if drop.any():
         # what covers the ends is what remains
-        cover = _other_component_cover(xy, width, labels, margin, coverers=np.array([len(a) > 0 for a in adj]))
+        has = np.array([len(a) > 0 for a in adj])
+        cover = _cover_distance(n, pairs, has[pairs[0]])
         covered = np.isfinite(cover)
     # dangling runs inside another component's stroke: cut back to the vertex nearest to it
     for v in range(n):
