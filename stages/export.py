@@ -224,8 +224,7 @@ def _mean_width(a: dict, b: dict):
     wa, wb = a.get("width"), b.get("width")
     if wa is None or wb is None:
         return wa if wb is None else wb
-    la = np.hypot(*np.diff(a["points"], axis=0).T).sum()
-    lb = np.hypot(*np.diff(b["points"], axis=0).T).sum()
+    la, lb = _length(a["points"]), _length(b["points"])
     return float((wa * la + wb * lb) / max(la + lb, 1e-12))
 
 
@@ -345,7 +344,6 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
             f = where
             op = other["points"] if f == 0 else other["points"][::-1]  # runs out of the junction
             o_type, o_kp = other["end_types"][1 - f], other["end_keypoints"][1 - f]
-            parts = list(other["parts"])
         else:
             m, f = where
             pts = other["points"].copy()
@@ -359,9 +357,8 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                 op, o_type, o_kp = second, other["end_types"][1], other["end_keypoints"][1]
                 rest = [dict(other, points=first, end_types=[other["end_types"][0], t_j],
                              end_keypoints=[other["end_keypoints"][0], k])]
-            parts = list(other["parts"])
         joined = {**spur, "points": np.concatenate([sp, op[1:]]), "end_types": [s_type, o_type],
-                  "end_keypoints": [s_kp, o_kp], "parts": list(spur["parts"]) + parts,
+                  "end_keypoints": [s_kp, o_kp], "parts": list(spur["parts"]) + list(other["parts"]),
                   "width": _mean_width(spur, other)}
         curves = [c for q, c in enumerate(curves) if q not in (i, j)] + rest + [joined]
 

@@ -708,7 +708,7 @@ def _flow_kernel(order, z, zoff, cen, sig, rho2, dist, coff, home, window, fld, 
             acc = 0.0
             longest = 0.0
             for r in range(n - 3, -1, -1):
-                after = nxt[r + 2] if r < n - 3 else cur[n - 1]
+                after = nxt[r + 2]                           # nxt[n - 1] is the fixed end
                 if r == n - 3:
                     zr = dp[r]
                 else:

@@ -307,7 +307,7 @@ def solve_mip(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarr
     for i in range(c.shape[0]):
         prob += pulp.lpSum(x[j] for j in c.indices[c.indptr[i]:c.indptr[i + 1]]) >= 1, f"cover_{i}"
     if problem.ends is not None and problem.ends.shape[0] and problem.excess_penalty > 0:
-        e = problem.ends.tocsr()
+        e = problem.ends
         slack = []
         for i in range(e.shape[0]):
             lo, hi = e.indptr[i], e.indptr[i + 1]
