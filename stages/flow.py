@@ -517,18 +517,30 @@ def _edge_terms(fld, t, m, eps):
     return g, ft, gx, gy, q
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy", fastmath=_FM)
+def _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, za, zb, home_j):
+    """One edge za → zb of Eq. 6a, shared by the energy, its gradient and the flow kernel.
+
+    Returns the edge vector ``t``, its weight ``W = g + B + λ``, ``q``, ``ft = ∂(q g)/∂t``,
+    ``fm = ∂(W q)/∂z`` through the midpoint (the share of each of its two vertices) and the updated
+    home centre index.
+    """
+    t = zb - za
+    m = 0.5 * (zb + za)
+    g, ft, gx, gy, q = _edge_terms(fld, t, m, eps)
+    h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, home_j)
+    b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
+    return t, g + b + lam, q, ft, (0.5 * q) * complex(gx + bx, gy + by), h
+
+
 @numba.njit(cache=True)
 def _path_energy(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, home):
     """Discrete Eq. 6a of one polyline, Σ (g + B + λ) q (updates the home indices)."""
     e = 0.0
     for j in range(1, n):
-        t = z[j] - z[j - 1]
-        m = 0.5 * (z[j] + z[j - 1])
-        g, ft, gx, gy, q = _edge_terms(fld, t, m, eps)
-        h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, home[j])
-        home[j] = h
-        b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
-        e += (g + b + lam) * q
+        _, w, q, _, _, home[j] = _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, z[j - 1], z[j],
+                                       home[j])
+        e += w * q
     return e
 
 
@@ -537,16 +549,11 @@ def _discrete_gradient(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, 
     """∂E_ε/∂z_j (as x + iy) of every vertex from the kernel's edge coefficients (tests use this)."""
     grad = np.zeros(n, np.complex128)
     for j in range(1, n):
-        t = z[j] - z[j - 1]
-        m = 0.5 * (z[j] + z[j - 1])
-        g, ft, gx, gy, q = _edge_terms(fld, t, m, eps)
-        h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, home[j])
-        home[j] = h
-        b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
-        kt = (g + b + lam) / q * t + ft
-        pt = 0.5 * q * complex(gx + bx, gy + by)
-        grad[j] += kt + pt
-        grad[j - 1] += -kt + pt
+        t, w, q, ft, fm, home[j] = _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, z[j - 1], z[j],
+                                         home[j])
+        kt = w / q * t + ft
+        grad[j] += kt + fm
+        grad[j - 1] += -kt + fm
     return grad
 
 
@@ -650,17 +657,12 @@ def _flow_kernel(order, z, zoff, cen, sig, rho2, dist, coff, home, window, fld, 
                 q_prev = 0.0
                 d_prev = 0.0
                 for j in range(1, n):
-                    t = cur[j] - cur[j - 1]
-                    m = 0.5 * (cur[j] + cur[j - 1])
-                    g, ft, gx, gy, q = _edge_terms(fld, t, m, eps)
-                    h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, hp[j])
+                    # ft (anisotropy, ∂(q g)/∂t) and fm (∂(W q)/∂z via the midpoint) are explicit.
+                    _, w, q, ft, fm, h = _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, cur[j - 1], cur[j],
+                                               hp[j])
                     hp[j] = h
-                    b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
-                    w = g + b + lam
                     e_cur += w * q
                     k_cur = w / q                                    # implicit: isotropic length
-                    # ft (from _edge_terms) is explicit: anisotropy, ∂(q g)/∂t
-                    fm = (0.5 * q) * complex(gx + bx, gy + by)       # explicit: ∂(W q)/∂z via m
                     d_cur = dist[c0i + h]
                     if j >= 2:
                         r = j - 2
