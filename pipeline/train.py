@@ -566,13 +566,67 @@ def train_class_branch(cfg: dict) -> dict:
 # Keypoint typing by local valence (stages/keypoints/valence.py)
 
 
-def type_classifier_data(cfg: dict, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Features and true types of the detected keypoints of ``count`` generated drawings.
+def _typing_samples(cfg: dict, count: int, seed: int):
+    """Generated drawings (``count``), then the vector drawings of ``train.type_classifier.vector``.
+
+    Yields
+    ------
+    stages.keypoints.generator.Sample
+    """
+    rng = np.random.default_rng(seed)
+    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
+    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    for _ in range(count):
+        yield generate(rng, gcfg, rules)
+    yield from vector_samples(cfg["train"]["type_classifier"].get("vector") or {}, rng, gcfg, rules)
+
+
+def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules):
+    """Human strokes from Quick, Draw! ndjson files, styled and labelled like the generated drawings.
+
+    ``vcfg`` (``train.type_classifier.vector``): ``files`` (glob patterns, relative to the working
+    directory), ``skip`` (drawings left out at the start of every file: the realvec_dev development
+    cases were made from the first five of each Quick, Draw! file, so they never reach training),
+    ``renders`` (styled copies per drawing, each with its own width, style and canvas size) and
+    ``size`` ([min, max] canvas side). The strokes keep their hand jitter, overdraw and near-touching
+    ends — what the procedural generator lacks — and their keypoints come from the same label rules.
+
+    Yields
+    ------
+    stages.keypoints.generator.Sample
+    """
+    import glob
+
+    from stages.keypoints.generator import drawing_from_strokes, fit_strokes, read_quickdraw_ndjson
+
+    files = sorted({f for pat in vcfg.get("files") or [] for f in glob.glob(str(pat))})
+    lo, hi = (int(v) for v in vcfg.get("size", [384, 512]))
+    for f in files:
+        for strokes in read_quickdraw_ndjson(f)[int(vcfg.get("skip", 0)):]:
+            strokes = [s for s in strokes if len(s) >= 2]
+            if not strokes:
+                continue
+            for _ in range(int(vcfg.get("renders", 1))):
+                size = int(rng.integers(lo, hi + 1))
+                yield drawing_from_strokes(rng, fit_strokes(strokes, size), (size, size), gcfg, rules)
+
+
+def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Features and true types of the detected keypoints of generated (and vector) drawings.
 
     Every drawing goes through the real stages — its grey image is encoded as an 8-bit PNG and run by
     ``prep`` and ``keypoints`` (with ``typing=argmax``) exactly as a user's drawing would be — so the
     features are those the stage computes at inference. Detected points are matched one-to-one to the
     ground truth within 5 px; unmatched ones carry no label and are left out.
+
+    Parameters
+    ----------
+    cfg : dict
+        ``train``, ``keypoints`` and ``prep`` sections.
+    count, seed : int
+        Number of generated drawings and the seed of all randomness.
+    vector : bool
+        Also use the vector drawings of ``train.type_classifier.vector`` (:func:`vector_samples`).
 
     Returns
     -------
@@ -591,13 +645,10 @@ def type_classifier_data(cfg: dict, count: int, seed: int) -> tuple[np.ndarray, 
     from stages.keypoints.labels import TYPE_CODES
     from stages.keypoints.valence import class_scores_at, valence_features
 
-    rng = np.random.default_rng(seed)
-    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
-    rules = LabelRules.from_dict(cfg["train"]["labels"])
     kcfg = dict(cfg["keypoints"], typing="argmax")
     feats, labels = [], []
-    for _ in range(count):
-        s = generate(rng, gcfg, rules)
+    tcfg = cfg["train"]["type_classifier"] if vector else dict(cfg["train"]["type_classifier"], vector=None)
+    for s in _typing_samples(dict(cfg, train=dict(cfg["train"], type_classifier=tcfg)), count, seed):
         if not len(s.points):
             continue
         buf = io.BytesIO()
@@ -669,11 +720,15 @@ def train_type_classifier(cfg: dict) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     x, y = type_classifier_data(cfg, int(tc["drawings"]), int(tc["seed"]))
-    vx, vy = type_classifier_data(cfg, int(tc["val_drawings"]), int(tc["val_seed"]))
+    vx, vy = type_classifier_data(cfg, int(tc["val_drawings"]), int(tc["val_seed"]), vector=False)
     t_data = time.time() - t0
     clf = fit_type_classifier(x, y, tc)
     # Class scores are the first three features: their argmax is the paper's typing.
+    import glob
+
+    vfiles = sorted({f for pat in (tc.get("vector") or {}).get("files") or [] for f in glob.glob(str(pat))})
     record = {"mode": "type_classifier", "keypoints": int(len(y)), "val_keypoints": int(len(vy)),
+              "vector_files": [Path(f).name for f in vfiles],
               "class_counts": np.bincount(y, minlength=3).tolist(), "data_seconds": t_data,
               "seconds": time.time() - t0,
               "train_accuracy": float((clf.predict(x) == y).mean()),
@@ -682,7 +737,7 @@ def train_type_classifier(cfg: dict) -> dict:
               "config": tc, "torch": str(torch.__version__)}
     clf.save(out / "type_classifier.npz")
     (out / "type_classifier.json").write_text(json.dumps(record, indent=2))
-    print(f"type classifier: {record['keypoints']} keypoints, generated validation accuracy "
+    print(f"type classifier: {record['keypoints']} keypoints ({len(vfiles)} vector files), generated validation accuracy "
           f"{record['val_accuracy']:.3f} (class-map argmax {record['val_accuracy_argmax']:.3f}), "
           f"{record['seconds']:.0f} s", flush=True)
     return record

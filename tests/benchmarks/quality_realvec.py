@@ -93,9 +93,10 @@ def _source_hash(stage: str) -> str:
         p = ROOT / rel
         for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
             h.update(f.read_bytes())
-    if stage == "keypoints":
-        w = ROOT / "stages" / "keypoints" / "weights" / "keypoints.pt"
-        h.update(w.read_bytes() if w.is_file() else b"untrained")
+    if stage == "keypoints":  # the packaged network and type classifier are inputs of the stage too
+        for name in ("keypoints.pt", "type_classifier.npz"):
+            w = ROOT / "stages" / "keypoints" / "weights" / name
+            h.update(w.read_bytes() if w.is_file() else b"untrained")
     return h.hexdigest()
 
 

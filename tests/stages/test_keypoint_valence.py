@@ -126,10 +126,50 @@ def test_type_classifier_training_smoke(tmp_path):
     from pipeline.train import compose_plain, train_type_classifier
 
     torch.set_num_threads(1)
+    ndjson = tmp_path / "doodles.ndjson"
+    _write_ndjson(ndjson, 3)
     cfg = compose_plain(CONF, [f"train.out_dir={tmp_path}", "train.type_classifier.drawings=4",
-                               "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20"])
+                               "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20",
+                               f"train.type_classifier.vector.files=[{ndjson}]",
+                               "train.type_classifier.vector.skip=2", "train.type_classifier.vector.size=[96,128]"])
     rec = train_type_classifier(cfg)
     assert rec["keypoints"] > 0 and sum(rec["class_counts"]) == rec["keypoints"]
+    assert rec["vector_files"] == ["doodles.ndjson"]
     clf = TypeClassifier.load(tmp_path / "type_classifier.npz")
     assert clf.params["w1"].shape == (FEATURES, int(cfg["train"]["type_classifier"]["hidden"]))
     assert 0.0 <= rec["val_accuracy"] <= 1.0
+
+
+def _write_ndjson(path, n):
+    """``n`` Quick, Draw!-style drawings: drawing i is a T whose bar is i + 1 units long... scaled up."""
+    import json
+
+    with open(path, "w") as f:
+        for i in range(n):
+            bar = [[0, 100 + 50 * i], [0, 0]]
+            stem = [[50 + 25 * i, 50 + 25 * i], [0, 120]]
+            f.write(json.dumps({"word": "t", "drawing": [bar, stem]}) + "\n")
+
+
+def test_vector_samples_skip_renders_and_labels(tmp_path):
+    """Human-stroke training drawings: the first ``skip`` drawings never appear, each is styled
+    ``renders`` times on a canvas within ``size``, and its keypoints come from the label rules."""
+    from pipeline.train import vector_samples
+    from stages.keypoints.generator import GeneratorConfig
+    from stages.keypoints.labels import LabelRules
+
+    ndjson = tmp_path / "doodles.ndjson"
+    _write_ndjson(ndjson, 3)
+    gcfg = GeneratorConfig.from_dict(yaml.safe_load((CONF / "train" / "default.yaml").read_text())["generator"])
+    rules = LabelRules.from_dict(yaml.safe_load((CONF / "train" / "default.yaml").read_text())["labels"])
+    vcfg = {"files": [str(tmp_path / "*.ndjson")], "skip": 1, "renders": 2, "size": [100, 140]}
+    samples = list(vector_samples(vcfg, np.random.default_rng(0), gcfg, rules))
+    assert len(samples) == 4  # drawings 1 and 2, twice each
+    for s in samples:
+        assert 100 <= s.grey.shape[0] <= 140 and s.grey.shape[0] == s.grey.shape[1]
+        # a T: two endpoints of the bar, the stem's free end, one junction where it meets the bar
+        assert sorted(s.types.tolist()) == [1, 1, 1, 3]
+    # drawing 0 (bar 100 units) is skipped: bar/stem length ratios are those of drawings 1 and 2
+    ratios = sorted({round(float(np.ptp(s.strokes[0][:, 0]) / np.ptp(s.strokes[1][:, 1])), 2) for s in samples})
+    assert ratios == [round(150 / 120, 2), round(200 / 120, 2)]
+    assert list(vector_samples({"files": [str(tmp_path / "none*.ndjson")]}, np.random.default_rng(0), gcfg, rules)) == []
