@@ -52,21 +52,27 @@ reads them.  With the option, such ends count as what is drawn: a short curve fr
 ≥ 3 ends to an endpoint, or from a junction to a corner nobody else reaches, is a spur too.
 realvec_dev, detector keypoints: dangling 27 → 20 in 106 drawings (0.25 → 0.19 per drawing); every
 other metric unchanged but in one tangled blob (qd_panda_02_clean, junction F1 0.68 → 0.67) and
-one F1@2 (−0.001).
+one F1@2 (−0.001).  Ground-truth keypoints (with the link contraction below): dangling 0.35 → 0.21
+per drawing, medians unchanged, junction F1 mean 0.8213 → 0.8181 (qd_whale_01_pencil 1.0 → 0.67:
+the tail's junction is read as a continuation after the split).
 
 Links below the drawing's resolution (``collapse.enabled``; a choice beyond the paper).  When one
 feature gets two keypoints a few pixels apart (a corner found twice at the bottom of a vee, a corner
 next to a junction), the selection draws a tiny curve between them and the other curves end at
 either keypoint; at the scale of the stroke width all those ends meet at one point, where the link
 adds two more ends (two corner arms + the link read as a junction).  A curve no longer than
-``max(collapse.max_px, collapse.max_widths · width)`` whose two ends both meet other curves is
-contracted to its midpoint, as an edge is contracted in a graph: it is removed and the ends that
-met it move to the midpoint (≤ half its length; see :func:`collapse_short_links`).  realvec_dev,
-detector keypoints: junction F1 mean 0.6935 → 0.6968 (9 drawings better, 3 worse), dangling
-20 → 19, F1@2 and the Hausdorff median unchanged (one drawing's Hausdorff 3.0 → 3.16 px).  Joining
-the link onto the neighbour that continues it (points unchanged) helped less (mean 0.6950, one more
-dangling branch): the other ends stay a link's length away and still meet as a junction.  Links up
-to 2.5 widths: junction F1 mean 0.6977 but one Hausdorff 5.8 → 7.0 px; 1.5 widths kept.
+``max(collapse.max_px, collapse.max_widths · width)`` (one stroke width: the drawing cannot resolve
+it) whose two ends both meet longer curves is contracted to its midpoint, as an edge is contracted
+in a graph: it is removed and the ends that met it move to the midpoint (≤ half its length; see
+:func:`collapse_short_links`).  It runs before the joins, which then see one meeting point.
+realvec_dev with spurs by drawn valence on: detector keypoints junction F1 mean 0.6935 → 0.6962
+(median 0.703 → 0.708), dangling 20 → 20 per 106, one Hausdorff 3.0 → 3.16 px; GT keypoints
+Hausdorff and F1@2 unchanged, junction F1 mean 0.8185 → 0.8181.  Tried: links up to 1.5 widths
+(detector junction mean 0.6968, but with GT keypoints — resolvable pairs of real keypoints — one
+Hausdorff 3.0 → 3.6 px moved the median 3.08 → 3.16 and junction F1 mean fell 0.8213 → 0.8147);
+contracting after the joins (mean 0.6948); joining the link onto the neighbour that continues it
+instead of moving ends (mean 0.6950, one more dangling branch: the other ends stay a link's length
+away and still meet as a junction).
 
 Duplicated pieces were measured and left alone.  About 90 of the ~125 false junctions where three
 or more curve ends meet (detector keypoints) have two of those ends running along the same stroke
@@ -284,8 +290,9 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
     — those ends all meet at one point, so the tiny link only adds a third and a fourth curve end
     there: two corner arms plus the link read as a junction.  A curve no longer than
     ``max(max_px, max_widths · width)`` whose ends both meet other curve ends (same keypoint, or
-    synthetic ends at the same point; never two ends of one curve, which would close it) is
-    removed, and every curve end that met either of its ends is moved to the link's midpoint (so no
+    synthetic ends at the same point; never two ends of one curve, which would close it), between
+    curves that are all longer than that (not inside a cluster of tiny curves, such as a filled
+    eye, which contracting one by one would shrink to a point), is removed, and every curve end that met either of its ends is moved to the link's midpoint (so no
     end moves by more than half the link) and takes the type and keypoint of the link's end that
     more curves met (ties: a corner, then a junction).  Free-ended short curves (tips, spurs) are
     left to :func:`attach_spurs`.
@@ -315,12 +322,13 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
     while True:
         found = None
         for i, c in enumerate(curves):
-            w = float(c.get("width") or 0.0)
-            if _length(c["points"]) > max(max_px, max_widths * w):
+            longest = max(max_px, max_widths * float(c.get("width") or 0.0))
+            if _length(c["points"]) > longest:
                 continue
             met = [[(j, g) for j, o in enumerate(curves) if j != i for g in (0, 1) if same(c, f, o, g)]
                    for f in (0, 1)]
-            if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}):
+            if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}) \
+                    and all(_length(curves[j]["points"]) > longest for j, _ in met[0] + met[1]):
                 found = (i, met)
                 break
         if found is None:

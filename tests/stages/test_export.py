@@ -440,3 +440,6 @@ def test_long_links_free_tips_and_triangles_are_not_contracted():
     # A curve with one end at each end of the link: contracting would close it on itself.
     loop = _piece(4, [[30, 40], [31.5, 30], [33, 40]], [5, 5], [5, 6])
     assert len(export.collapse_short_links([a, b, link, loop], 3.0, 1.5)) == 4
+    # Tiny curves among tiny curves (a filled eye with many keypoints) would shrink to a point.
+    a_short = dict(a, points=_line((28, 38), (30, 40)))
+    assert len(export.collapse_short_links([a_short, b, link], 3.0, 1.5)) == 3
