@@ -80,10 +80,13 @@ for ≥ 2 stroke widths (within 0.75 px: flowed paths that took different graph 
 band converge on one centre line; the selection keeps both because their *unflowed* routes cover
 different pixels).  Cutting the shared end run off the shorter curve (or dropping curves lying
 wholly within 0.75 px of others) halves the duplicated length (median 49.6 → 7 px) but moves the
-false junction to where the two curves part, which the ground truth rarely marks: junction F1 mean
-unchanged (0.6979 vs 0.6968), endpoint F1 mean −0.006, dangling 19 → 22; a band-width tolerance
-(0.5 w) cut the second of two touching parallel strokes.  Coverage computed from the flowed curves
-in the selection instead was much worse (more curves, duplicated median 420 px).
+false junction to where the two curves part, which the ground truth rarely marks (junction FPs with
+nothing in the ground truth 122 → 193): junction F1 mean +0.001 (median +0.02), endpoint F1 mean
+−0.006, dangling +3, F1@2 of 60 drawings slightly lower; a band-width tolerance (0.5 w) cut the
+second of two touching parallel strokes.  Only 1 of the 13 false crossings is two duplicates
+crossing at a shallow angle.  In the selection, coverage from the flowed curves instead of the
+topology paths was much worse (more curves, duplicated median 420 px), and ``cap_branches`` raised
+the Hausdorff median 3.16 → 3.38 px.
 
 Overshoots (``overshoot.enabled``; a choice beyond the paper).  When no keypoint marks the tip of an
 overshoot, the topology ends the stroke at the junction and the few pixels of ink beyond are lost;
