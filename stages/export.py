@@ -44,6 +44,50 @@ split there) — when the turn is at most ``spurs.max_turn_deg``.  The drawn poi
 valences are unchanged.  With ``max_turn_deg`` 60° → 75° dangling fell from 0.35 to 0.30 per
 drawing (realvec_dev, GT keypoints) and junction F1 stayed 0.831.
 
+Spur ends by their drawn valence (``spurs.by_drawn_valence``).  The spur rule reads "junction" and
+"free end" off the keypoint types, but a corner keypoint where three or more curve ends meet is drawn
+as a junction, and a corner or junction keypoint that only one curve reaches (nothing else ends or
+passes there) is drawn as a free end — which is also how the valence topology of the evaluation
+reads them.  With the option, such ends count as what is drawn: a short curve from a corner with
+≥ 3 ends to an endpoint, or from a junction to a corner nobody else reaches, is a spur too.
+realvec_dev, detector keypoints: dangling 27 → 20 in 106 drawings (0.25 → 0.19 per drawing); every
+other metric unchanged but in one tangled blob (qd_panda_02_clean, junction F1 0.68 → 0.67) and
+one F1@2 (−0.001).  Ground-truth keypoints (with the link contraction below): dangling 0.35 → 0.21
+per drawing, medians unchanged, junction F1 mean 0.8213 → 0.8181 (qd_whale_01_pencil 1.0 → 0.67:
+the tail's junction is read as a continuation after the split).
+
+Links below the drawing's resolution (``collapse.enabled``; a choice beyond the paper).  When one
+feature gets two keypoints a few pixels apart (a corner found twice at the bottom of a vee, a corner
+next to a junction), the selection draws a tiny curve between them and the other curves end at
+either keypoint; at the scale of the stroke width all those ends meet at one point, where the link
+adds two more ends (two corner arms + the link read as a junction).  A curve no longer than
+``max(collapse.max_px, collapse.max_widths · width)`` (one stroke width: the drawing cannot resolve
+it) whose two ends both meet longer curves is contracted to its midpoint, as an edge is contracted
+in a graph: it is removed and the ends that met it move to the midpoint (≤ half its length; see
+:func:`collapse_short_links`).  It runs before the joins, which then see one meeting point.
+realvec_dev with spurs by drawn valence on: detector keypoints junction F1 mean 0.6935 → 0.6962
+(median 0.703 → 0.708), dangling 20 → 20 per 106, one Hausdorff 3.0 → 3.16 px; GT keypoints
+Hausdorff and F1@2 unchanged, junction F1 mean 0.8185 → 0.8181.  Tried: links up to 1.5 widths
+(detector junction mean 0.6968, but with GT keypoints — resolvable pairs of real keypoints — one
+Hausdorff 3.0 → 3.6 px moved the median 3.08 → 3.16 and junction F1 mean fell 0.8213 → 0.8147);
+contracting after the joins (mean 0.6948); joining the link onto the neighbour that continues it
+instead of moving ends (mean 0.6950, one more dangling branch: the other ends stay a link's length
+away and still meet as a junction).
+
+Duplicated pieces were measured and left alone.  About 90 of the ~125 false junctions where three
+or more curve ends meet (detector keypoints) have two of those ends running along the same stroke
+for ≥ 2 stroke widths (within 0.75 px: flowed paths that took different graph routes through one
+band converge on one centre line; the selection keeps both because their *unflowed* routes cover
+different pixels).  Cutting the shared end run off the shorter curve (or dropping curves lying
+wholly within 0.75 px of others) halves the duplicated length (median 49.6 → 7 px) but moves the
+false junction to where the two curves part, which the ground truth rarely marks (junction FPs with
+nothing in the ground truth 122 → 193): junction F1 mean +0.001 (median +0.02), endpoint F1 mean
+−0.006, dangling +3, F1@2 of 60 drawings slightly lower; a band-width tolerance (0.5 w) cut the
+second of two touching parallel strokes.  Only 1 of the 13 false crossings is two duplicates
+crossing at a shallow angle.  In the selection, coverage from the flowed curves instead of the
+topology paths was much worse (more curves, duplicated median 420 px), and ``cap_branches`` raised
+the Hausdorff median 3.16 → 3.38 px.
+
 Overshoots (``overshoot.enabled``; a choice beyond the paper).  When no keypoint marks the tip of an
 overshoot, the topology ends the stroke at the junction and the few pixels of ink beyond are lost;
 on realvec_dev that tip was the largest Hausdorff error in about a quarter of the drawings.  A curve
@@ -66,7 +110,7 @@ import numpy as np
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 
-STAGE_VERSION = "2"
+STAGE_VERSION = "3"
 
 
 @dataclass(frozen=True)
@@ -88,12 +132,16 @@ class ExportParams:
     spur_max_widths: float
     spur_max_turn_deg: float
     spur_near_px: float
+    spur_by_valence: bool
     overshoot: bool
     overshoot_min_px: float
     overshoot_min_widths: float
     overshoot_max_px: float
     overshoot_max_widths: float
     overshoot_clearance: float
+    collapse: bool
+    collapse_max_px: float
+    collapse_max_widths: float
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "ExportParams":
@@ -110,12 +158,16 @@ class ExportParams:
                     spur_max_widths=float(cfg["spurs"]["max_widths"]),
                     spur_max_turn_deg=float(cfg["spurs"]["max_turn_deg"]),
                     spur_near_px=float(cfg["spurs"]["near_px"]),
+                    spur_by_valence=bool(cfg["spurs"]["by_drawn_valence"]),
                     overshoot=bool(cfg["overshoot"]["enabled"]),
                     overshoot_min_px=float(cfg["overshoot"]["min_px"]),
                     overshoot_min_widths=float(cfg["overshoot"]["min_widths"]),
                     overshoot_max_px=float(cfg["overshoot"]["max_px"]),
                     overshoot_max_widths=float(cfg["overshoot"]["max_widths"]),
-                    overshoot_clearance=float(cfg["overshoot"]["clearance"]))
+                    overshoot_clearance=float(cfg["overshoot"]["clearance"]),
+                    collapse=bool(cfg["collapse"]["enabled"]),
+                    collapse_max_px=float(cfg["collapse"]["max_px"]),
+                    collapse_max_widths=float(cfg["collapse"]["max_widths"]))
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
@@ -229,6 +281,80 @@ def _mean_width(a: dict, b: dict):
 
 
 # ---------------------------------------------------------------------------------------------
+# Curves below the drawing's resolution between two keypoints
+# ---------------------------------------------------------------------------------------------
+
+def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -> list[dict]:
+    """Collapse curves shorter than about a stroke width whose two ends both meet other curves.
+
+    When one feature of the drawing gets two keypoints a few pixels apart (a corner found twice at
+    the bottom of a vee, a corner next to a junction), the selection draws a tiny curve between them
+    and the other curves end at either keypoint.  Read at the drawing's resolution — the stroke width
+    — those ends all meet at one point, so the tiny link only adds a third and a fourth curve end
+    there: two corner arms plus the link read as a junction.  A curve no longer than
+    ``max(max_px, max_widths · width)`` whose ends both meet other curve ends (same keypoint, or
+    synthetic ends at the same point; never two ends of one curve, which would close it), between
+    curves that are all longer than that (not inside a cluster of tiny curves, such as a filled
+    eye, which contracting one by one would shrink to a point), is removed, and every curve end that met either of its ends is moved to the link's midpoint (so no
+    end moves by more than half the link) and takes the type and keypoint of the link's end that
+    more curves met (ties: a corner, then a junction).  Free-ended short curves (tips, spurs) are
+    left to :func:`attach_spurs`.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`join_continuations`.
+    max_px, max_widths : float
+        Longest link collapsed: ``max(max_px, max_widths · width)`` (width = the link's mean width).
+
+    Returns
+    -------
+    list of dict
+        The remaining curves (same dict layout).
+    """
+    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+
+    def same(c: dict, f: int, o: dict, g: int) -> bool:
+        """Whether end f of c and end g of o are one meeting (one keypoint, or one synthetic point)."""
+        k, t = c["end_keypoints"][f], c["end_types"][f]
+        if k >= 0:
+            return o["end_keypoints"][g] == k
+        return t == 0 and o["end_types"][g] == 0 and o["end_keypoints"][g] < 0 and \
+            np.hypot(*(c["points"][0 if f == 0 else -1] - o["points"][0 if g == 0 else -1])) <= _SAME_POINT_PX
+
+    while True:
+        found = None
+        for i, c in enumerate(curves):
+            longest = max(max_px, max_widths * float(c.get("width") or 0.0))
+            if _length(c["points"]) > longest:
+                continue
+            met = [[(j, g) for j, o in enumerate(curves) if j != i for g in (0, 1) if same(c, f, o, g)]
+                   for f in (0, 1)]
+            if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}) \
+                    and all(_length(curves[j]["points"]) > longest for j, _ in met[0] + met[1]):
+                found = (i, met)
+                break
+        if found is None:
+            return curves
+        i, met = found
+        link = curves[i]
+        mid = 0.5 * (link["points"][0] + link["points"][-1])
+        # The meeting keeps the keypoint that more curves met; on a tie (one curve at each end: two
+        # ends meet, a corner) a corner keypoint wins, so the ends are not joined or extended there.
+        rank = {5: 3, 3: 2, 1: 1, 0: 0}
+        f = max((0, 1), key=lambda e: (len(met[e]), rank.get(link["end_types"][e], 0), -e))
+        t, k = link["end_types"][f], link["end_keypoints"][f]
+        for j, g in met[0] + met[1]:
+            o = curves[j]
+            pts = o["points"].copy()
+            pts[0 if g == 0 else -1] = mid
+            types, kps = list(o["end_types"]), list(o["end_keypoints"])
+            types[g], kps[g] = t, k
+            curves[j] = dict(o, points=pts, end_types=types, end_keypoints=kps)
+        curves = [c for q, c in enumerate(curves) if q != i]
+
+
+# ---------------------------------------------------------------------------------------------
 # Short spurs at junctions and unlabelled overshoots
 # ---------------------------------------------------------------------------------------------
 
@@ -245,7 +371,7 @@ _SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology put
 
 
 def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_turn_deg: float,
-                 tangent_px: float, near_px: float) -> list[dict]:
+                 tangent_px: float, near_px: float, by_valence: bool = False) -> list[dict]:
     """Attach every short junction-to-endpoint curve to the curve it continues at the junction.
 
     A *spur* is a curve no longer than ``max(spur_px, spur_widths · width)`` with one end at a
@@ -255,7 +381,10 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
     junction continues it best — another curve ending at that keypoint, or one half of a curve
     passing within ``near_px`` of it (that curve is split there; the split vertex moves onto the
     keypoint) — when the turn is at most ``max_turn_deg``.  The drawn points and the valence at the
-    junction are unchanged; only the partition into curves changes.
+    junction are unchanged; only the partition into curves changes.  With ``by_valence`` the ends
+    at corner and junction keypoints count by their drawn valence (curve ends at the keypoint plus
+    two per curve passing within ``near_px``): a corner with three or more is a junction, a corner
+    or junction keypoint with only this end is a free end.
 
     Parameters
     ----------
@@ -270,6 +399,8 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
         Arc length over which end directions are measured.
     near_px : float
         A curve passes through the junction when one of its interior vertices lies this close.
+    by_valence : bool
+        Read corner and junction keypoint ends by their drawn valence (see above).
 
     Returns
     -------
@@ -280,14 +411,25 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
 
     def meets(c: dict, f: int, t: int, k: int, p: np.ndarray) -> bool:
         """Whether end f of curve c is at the junction (keypoint k, or the synthetic point p)."""
-        if t == 3:
-            return c["end_types"][f] == 3 and c["end_keypoints"][f] == k
+        if t in (3, 5):
+            return c["end_types"][f] == t and c["end_keypoints"][f] == k
         return c["end_types"][f] == 0 and np.hypot(*(c["points"][0 if f == 0 else -1] - p)) <= _SAME_POINT_PX
 
     def shared(i: int, e: int) -> bool:
         c = curves[i]
         p = c["points"][0 if e == 0 else -1]
         return any(meets(o, f, 0, -1, p) for j, o in enumerate(curves) for f in (0, 1) if (j, f) != (i, e))
+
+    def drawn_valence(i: int, e: int) -> int:
+        """Valence drawn at a keypoint end: curve ends at its keypoint, plus 2 per curve passing by."""
+        c = curves[i]
+        k, p = c["end_keypoints"][e], c["points"][0 if e == 0 else -1]
+        at_k = [any(o["end_keypoints"][f] == k for f in (0, 1)) for o in curves]
+        v = sum(o["end_keypoints"][f] == k for o in curves for f in (0, 1))
+        for j, o in enumerate(curves):
+            if not at_k[j] and len(o["points"]) > 2:
+                v += 2 * bool(np.min(np.hypot(*(o["points"][1:-1] - p).T)) <= near_px)
+        return v
 
     while True:
         found = None
@@ -297,8 +439,11 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                 continue
             for e in (0, 1):
                 t_j, t_f = c["end_types"][e], c["end_types"][1 - e]
-                at_junction = (t_j == 3 and c["end_keypoints"][e] >= 0) or t_j == 0
-                free = t_f == 1 or (t_f == 0 and not shared(i, 1 - e))
+                at_junction = ((t_j == 3 and c["end_keypoints"][e] >= 0) or t_j == 0
+                               or (by_valence and t_j == 5 and drawn_valence(i, e) >= 3))
+                free = (t_f == 1 or (t_f == 0 and not shared(i, 1 - e))
+                        or (by_valence and t_f in (3, 5) and c["end_keypoints"][1 - e] >= 0
+                            and drawn_valence(i, 1 - e) == 1))
                 if at_junction and free:
                     found = (i, e)
                     break
@@ -699,12 +844,14 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                        "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
                        "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
                        "width": float(np.mean(w)) if len(w) else None})
+    if params.collapse:
+        curves = collapse_short_links(curves, params.collapse_max_px, params.collapse_max_widths)
     if params.join:
         curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px,
                                     params.join_margin_deg, params.join_same_branch_deg)
     if params.spurs:
         curves = attach_spurs(curves, params.spur_max_px, params.spur_max_widths, params.spur_max_turn_deg,
-                              params.join_tangent_px, params.spur_near_px)
+                              params.join_tangent_px, params.spur_near_px, params.spur_by_valence)
     mask = prep.arrays.get("mask")
     if params.overshoot and mask is not None:
         curves = extend_overshoots(curves, np.asarray(mask, bool), params.join_tangent_px, params.overshoot_min_px,

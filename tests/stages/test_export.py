@@ -355,3 +355,91 @@ def test_spur_at_a_synthetic_junction_with_a_free_synthetic_end():
     # The same spur whose far end is shared (a chain goes on there) is no spur.
     c = _piece(4, _line((25, 23), (45, 23)), [0, 1], [-1, 11])
     assert len(export.attach_spurs([a, b, spur, c], 12.0, 4.0, 60.0, 5.0, 1.5)) == 4
+
+
+# ---------------------------------------------------------------------------------------------
+# Spur ends by their drawn valence, and links below the drawing's resolution
+# ---------------------------------------------------------------------------------------------
+
+def _topology(curves, width=3.0):
+    from stages.evaluate.topology import TopologyParams, extract_topology
+
+    bench = yaml.safe_load((ROOT / "conf" / "bench" / "default.yaml").read_text())
+    return extract_topology([np.asarray(c["points"]) for c in curves], width,
+                            TopologyParams.from_cfg(bench["topology"]))
+
+
+@pytest.mark.parametrize("by_valence", [False, True])
+def test_spur_at_a_corner_where_three_curves_end_is_joined_by_its_drawn_valence(by_valence):
+    # Corner keypoint 7 at (30, 30): arms from the left and from above, and a 6 px piece going on
+    # straight to the right to endpoint 9 — three curve ends at a "corner": a junction as drawn.
+    left = _piece(1, _line((0, 30), (30, 30)), [1, 5], [8, 7])
+    up = _piece(2, _line((30, 30), (30, 0)), [5, 1], [7, 10])
+    spur = _piece(3, _line((30, 30), (36, 30)), [5, 1], [7, 9])
+    out = export.attach_spurs([left, up, spur], 12.0, 4.0, 75.0, 5.0, 1.5, by_valence)
+    assert _ink_set(out) == _ink_set([left, up, spur])
+    if by_valence:
+        assert len(out) == 2 and sorted(next(c for c in out if len(c["parts"]) == 2)["parts"]) == [1, 3]
+        assert _topology(out).dangling == []
+    else:
+        assert len(out) == 3 and len(_topology(out).dangling) == 1
+
+
+def test_spur_to_a_corner_that_no_other_curve_reaches_is_free_by_its_drawn_valence():
+    # A stroke passes junction 7 at (20, 20); an 8 px piece leaves it at 34° to a corner keypoint 9
+    # that nothing else reaches (a stroke tip typed as a corner): a dangling branch as drawn.
+    through = _piece(1, _line((0, 20), (40, 20)), [1, 1], [1, 2])
+    spur = _piece(3, _line((20, 20), (20 + 8 * np.cos(0.6), 20 + 8 * np.sin(0.6))), [3, 5], [7, 9])
+    assert len(_topology([through, spur]).dangling) == 1
+    assert len(export.attach_spurs([through, spur], 12.0, 4.0, 75.0, 5.0, 1.5, False)) == 2      # kept apart
+    out = export.attach_spurs([through, spur], 12.0, 4.0, 75.0, 5.0, 1.5, True)
+    assert len(out) == 2 and _topology(out).dangling == []
+    assert sorted(next(c for c in out if 3 in c["parts"])["end_keypoints"]) == [1, 9]     # the left half goes on into it
+    # A corner end that another curve shares is not free: nothing is joined.
+    other = _piece(4, _line(spur["points"][-1], (40, 40)), [5, 1], [9, 11])
+    assert all(len(c["parts"]) == 1 for c in export.attach_spurs([through, spur, other], 12.0, 4.0, 75.0, 5.0, 1.5,
+                                                                  True))
+
+
+def _vee_with_a_doubled_corner(gap=3.0):
+    """Two arms of a vee ending at corner keypoints 5 and 6, ``gap`` px apart, and the tiny link between."""
+    c1, c2 = np.array([30.0, 40.0]), np.array([30.0 + gap, 40.0])
+    a = _piece(1, _line((10, 10), c1), [1, 5], [0, 5])
+    b = _piece(2, _line(c2, (50, 10)), [5, 1], [6, 1])
+    link = _piece(3, _line(c1, c2), [5, 5], [5, 6])
+    return a, b, link
+
+
+def test_a_link_shorter_than_the_stroke_width_between_two_corners_is_contracted():
+    a, b, link = _vee_with_a_doubled_corner()
+    before = _topology([a, b, link])
+    assert len(before.junctions) == 1                     # arm + arm + link ends read as a junction
+    out = export.collapse_short_links([a, b, link], 3.0, 1.5)
+    assert [c["id"] for c in out] == [1, 2]
+    mid = np.array([31.5, 40.0])
+    np.testing.assert_allclose(out[0]["points"][-1], mid)
+    np.testing.assert_allclose(out[1]["points"][0], mid)
+    assert out[0]["end_keypoints"][1] == out[1]["end_keypoints"][0]
+    np.testing.assert_allclose(out[0]["points"][:-1], a["points"][:-1])      # only the end moved
+    after = _topology(out)
+    assert len(after.junctions) == 0 and len(after.continuations) == 1
+    # Through run(): the config switch turns it on and off.
+    inputs = _inputs([c["points"] for c in (a, b, link)], [0, 1, 2])
+    for p, c in zip(inputs["topology"].data["paths"], (a, b, link)):
+        p["end_types"], p["end_keypoints"], p["widths"] = c["end_types"], c["end_keypoints"], [3.0] * len(c["points"])
+    assert len(export.run(CFG, **inputs).data["curves"]) == 2
+    assert len(export.run(_cfg(collapse={**CFG["collapse"], "enabled": False}), **inputs).data["curves"]) == 3
+
+
+def test_long_links_free_tips_and_triangles_are_not_contracted():
+    a, b, link = _vee_with_a_doubled_corner(gap=8.0)            # longer than 1.5 widths
+    assert len(export.collapse_short_links([a, b, link], 3.0, 1.5)) == 3
+    a, b, link = _vee_with_a_doubled_corner()
+    tip = dict(link, end_types=[5, 1], end_keypoints=[5, 9])     # one end free: a tip, not a link
+    assert len(export.collapse_short_links([a, b, tip], 3.0, 1.5)) == 3
+    # A curve with one end at each end of the link: contracting would close it on itself.
+    loop = _piece(4, [[30, 40], [31.5, 30], [33, 40]], [5, 5], [5, 6])
+    assert len(export.collapse_short_links([a, b, link, loop], 3.0, 1.5)) == 4
+    # Tiny curves among tiny curves (a filled eye with many keypoints) would shrink to a point.
+    a_short = dict(a, points=_line((28, 38), (30, 40)))
+    assert len(export.collapse_short_links([a_short, b, link], 3.0, 1.5)) == 3
