@@ -93,8 +93,12 @@ Choices made on purpose (vs. the paper and the authors' code)
   × half the stroke width inside the band (:func:`.key_vertices.snap_position`; depth = the band's
   distance transform, which counts from pixel centres, ~0.5 px more than the ink depth).  Keypoints
   deeper than that — 80–90 % of the detected corners — are reached exactly, so sharp corners stay
-  sharp.  Measured on realvec_dev with the detector: Hausdorff ≤ 3 px in 53 cases instead of 50
-  (median 3.16 → 3.08, mean 3.90 → 3.84).  Junctions and endpoints keep the authors' rule: a
+  sharp.  Measured on realvec_dev (tests/benchmarks/quality_realvec.py): with the detector,
+  Hausdorff ≤ 3 px in 53 cases instead of 50 (median 3.16 → 3.08, mean 3.90 → 3.84; junction F1
+  mean 0.694 → 0.692, median 0.703 → 0.696, one case crossing the median; endpoint F1 and F1@2
+  unchanged; dangling 0.25 → 0.27 per drawing: two corners at the tip of a bump now lie within the
+  meeting radius of the passing curve); with ground-truth keypoints, median 3.08 → 3.00, junction F1
+  mean 0.821 → 0.825.  Junctions and endpoints keep the authors' rule: a
   junction's ground truth is where a stem's end touches the bar, often at the bar's edge (the same
   rule on junctions cost junction F1: median 0.703 → 0.686, some output junctions moved just out of
   the 5 px match radius), and an endpoint lies at the end cap, near the ink's edge by nature.
