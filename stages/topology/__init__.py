@@ -84,24 +84,30 @@ Choices made on purpose (vs. the paper and the authors' code)
   their non-key ends promoted to synthetic key vertices, so the candidates always cover the subgraph.
 * A vertex claimed by two keypoints keeps the nearer keypoint.
 * **Corner keypoints at the ink's edge** (``keypoint_min_depth``, not in the paper: the authors move
-  every key vertex exactly onto its keypoint).  A corner is a turn of one stroke's centre line, so a
-  corner keypoint that the detector put at the side of the stroke is misplaced, and moving the key
-  vertex onto it drags every curve ending at or running through the corner across the stroke.  On
-  realvec_dev (detector keypoints) that was the worst Hausdorff pixel of qd_dog_01_pencil,
-  tu_angel_163_pencil, qd_bear_01_clean and the merged bands of qd_cat_00/rabbit_00_clean.  A corner's key
-  vertex now moves towards its keypoint only while the segment stays ≥ ``keypoint_min_depth`` (0.8)
-  × half the stroke width inside the band (:func:`.key_vertices.snap_position`; depth = the band's
-  distance transform, which counts from pixel centres, ~0.5 px more than the ink depth).  Keypoints
-  deeper than that — 80–90 % of the detected corners — are reached exactly, so sharp corners stay
-  sharp.  Measured on realvec_dev (tests/benchmarks/quality_realvec.py): with the detector,
-  Hausdorff ≤ 3 px in 53 cases instead of 50 (median 3.16 → 3.08, mean 3.90 → 3.84; junction F1
-  mean 0.694 → 0.692, median 0.703 → 0.696, one case crossing the median; endpoint F1 and F1@2
-  unchanged; dangling 0.25 → 0.27 per drawing: two corners at the tip of a bump now lie within the
-  meeting radius of the passing curve); with ground-truth keypoints, median 3.08 → 3.00, junction F1
-  mean 0.821 → 0.825.  Junctions and endpoints keep the authors' rule: a
-  junction's ground truth is where a stem's end touches the bar, often at the bar's edge (the same
-  rule on junctions cost junction F1: median 0.703 → 0.686, some output junctions moved just out of
-  the 5 px match radius), and an endpoint lies at the end cap, near the ink's edge by nature.
+  every key vertex exactly onto its keypoint).  Where two strokes run side by side in one band (a
+  merged band, an acute vee, a stroke ending against another) the graph has one chain down the
+  band's middle, and a corner keypoint of one of the strokes lies near the band's edge.  Moving the
+  key vertex onto it drags every curve ending at or running through the corner against that side,
+  leaving the other stroke 3–4 px from any curve: the worst Hausdorff pixel of qd_dog_01_pencil,
+  tu_angel_163_pencil, qd_bear_01_clean, qd_cat_00_clean and qd_rabbit_00_clean on realvec_dev
+  (detector keypoints).  Such detections are mostly *right* (the shallow ones lie 0.7 px, median,
+  from a ground-truth keypoint; the moved positions 1.2 px): the fault is the single chain, which
+  the selection cannot fix.  So a corner's key vertex moves towards its keypoint only while the
+  segment stays ≥ ``keypoint_min_depth`` (0.8) × half the stroke width inside the band
+  (:func:`.key_vertices.snap_position`; depth = the band's distance transform, which counts from
+  pixel centres, ~0.5 px more than the ink depth), keeping the one curve between the two strokes.
+  Keypoints deeper than that — 80–90 % of the detected corners — are reached exactly, so sharp
+  corners stay sharp.  Junction and endpoint keypoints keep the authors' rule: they say where curves
+  meet or end, and moving them moves that point away from the truth (shallow junction detections:
+  1.1 px from a ground-truth keypoint, moved 2.0 px; applying the rule to junctions too gave 54
+  cases ≤ 3 px but more topology churn: junction F1 changed in 24 drawings, 11 worse, median
+  0.703 → 0.694; endpoint F1 in 14, 8 worse).  Measured on realvec_dev
+  (tests/benchmarks/quality_realvec.py), detector keypoints: Hausdorff ≤ 3 px in 53 cases instead
+  of 50 (median 3.16 → 3.08, mean 3.90 → 3.84; 11 better, 3 worse); junction F1 changed in 9
+  drawings (5 worse: mean 0.694 → 0.692, median 0.703 → 0.696, one case crossing it); endpoint F1
+  median and F1@2 unchanged; dangling 0.25 → 0.27 per drawing (two corners at the tip of a bump
+  now lie within the meeting radius of the passing curve).  Ground-truth keypoints: Hausdorff
+  median 3.08 → 3.00, junction F1 mean 0.821 → 0.825.
 
 References
 ----------

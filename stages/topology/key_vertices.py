@@ -134,11 +134,13 @@ def snap_position(depth: np.ndarray, vertex_xy: np.ndarray, keypoint_xy: np.ndar
                   min_depth: float, step: float = 0.25) -> np.ndarray:
     """Where a key vertex moves towards its keypoint: the keypoint, unless it lies near the ink's edge.
 
-    The paper (and the authors' code) moves every key vertex onto its keypoint.  A detection that
-    sits at the side of the stroke then drags every curve ending at, or passing through, it across
-    the stroke.  So the key vertex moves along the segment towards its keypoint only while the
-    segment stays at least ``min_depth · half_width`` inside the band (``depth`` = distance to the
-    nearest background pixel centre); a keypoint that deep or deeper is reached exactly.
+    The paper (and the authors' code) moves every key vertex onto its keypoint.  A keypoint near the
+    band's edge (typically one of two strokes drawn side by side in one band, traced as one chain)
+    then drags every curve ending at, or passing through, it against that side of the band.  So the
+    key vertex moves along the segment towards its keypoint only while the segment stays at least
+    ``min_depth · half_width`` inside the band (``depth`` = distance to the nearest background pixel
+    centre); a keypoint that deep or deeper is reached exactly.  The stage applies it to corners
+    only (see its docstring).
 
     Parameters
     ----------

@@ -1,8 +1,8 @@
 """Key vertices move onto corner keypoints only as far as the ink's centre region allows.
 
-A corner keypoint detected at the side of the stroke (qd_dog_01_pencil, tu_angel_163_pencil on
-realvec_dev) dragged the curves through it across the stroke, leaving the ground truth's other side
-3–4 px away; see :func:`stages.topology.key_vertices.snap_position`.
+A corner keypoint near the band's edge (a stroke of two drawn side by side in one band:
+qd_dog_01_pencil, tu_angel_163_pencil on realvec_dev) dragged the curves through it against that
+side, leaving the other stroke 3–4 px away; see :func:`stages.topology.key_vertices.snap_position`.
 """
 
 from __future__ import annotations
