@@ -13,6 +13,7 @@ class TopologyConfig:
 
     keypoint_radius_px: float
     merge_graph_dist_px: float
+    keypoint_min_depth: float
     steiner_method: str
     coverage_margin_px: float
     min_new_vertices: int

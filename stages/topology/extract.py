@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
 from stages.topology.allowed_paths import enumerate_allowed_paths
@@ -25,7 +26,7 @@ from stages.topology.config import TopologyConfig
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
-from stages.topology.key_vertices import find_key_vertices
+from stages.topology.key_vertices import find_key_vertices, snap_position
 from stages.topology.steiner import path_to_source, steiner_tree
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
@@ -70,11 +71,14 @@ class _Extractor:
     def prepare(self, points, types, roots) -> None:
         conf, g = self.conf, self.g
         self.graph_xy = g.xy.copy()                 # positions before key vertices move
+        depth = ndimage.distance_transform_edt(self.mask) if conf.keypoint_min_depth > 0 else None
         for v, k, t in find_key_vertices(g, self.comp_of, points, types, roots, self.mask,
                                          conf.keypoint_radius_px, conf.merge_graph_dist_px,
                                          conf.min_component_vertices):
             self.add_terminal(int(self.comp_of[v]), v, (k, t))
-            g.xy[v] = points[k]                     # trust the keypoint's position (paper §4.2)
+            # onto the keypoint (paper §4.2), unless it sits at the ink's edge (see snap_position)
+            g.xy[v] = points[k] if depth is None or t != 5 else snap_position(
+                depth, self.graph_xy[v], points[k], 0.5 * float(g.width[v]), conf.keypoint_min_depth)
         self.arc_len = g.arc_length()
         self.turn_ptr, self.turn_ok = turn_table(g, arc_motions(g, conf.turn_probe_px), conf.turn_min_cos)
         self.search_turn_ok = near_singularity_only(g, self.turn_ptr, self.turn_ok)

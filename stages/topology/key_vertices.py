@@ -20,6 +20,10 @@ the nearest one usually lies on the passing stroke, so every path along that str
 endpoint (on realvec_dev with ground-truth keypoints 15 % of the endpoints ended two or three chosen
 curves, scored as junctions).  When no tip is near, the key vertex may still lie on a passing chain;
 the allowed paths may then run through it (``pass_through_endpoints``).
+
+Key vertices then move onto their keypoints (paper §4.2) — a corner's only as far as
+:func:`snap_position` allows (the keypoint may sit at the side of the stroke; see the stage's
+docstring, "Corner keypoints at the ink's edge").
 """
 
 from __future__ import annotations
@@ -124,3 +128,51 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
                 if v not in claims or dist < claims[v][0]:
                     claims[v] = (dist, k, int(t))
     return [(v, k, t) for v, (_, k, t) in sorted(claims.items())]
+
+
+def snap_position(depth: np.ndarray, vertex_xy: np.ndarray, keypoint_xy: np.ndarray, half_width: float,
+                  min_depth: float, step: float = 0.25) -> np.ndarray:
+    """Where a key vertex moves towards its keypoint: the keypoint, unless it lies near the ink's edge.
+
+    The paper (and the authors' code) moves every key vertex onto its keypoint.  A keypoint near the
+    band's edge (typically one of two strokes drawn side by side in one band, traced as one chain)
+    then drags every curve ending at, or passing through, it against that side of the band.  So the
+    key vertex moves along the segment towards its keypoint only while the segment stays at least
+    ``min_depth · half_width`` inside the band (``depth`` = distance to the nearest background pixel
+    centre); a keypoint that deep or deeper is reached exactly.  The stage applies it to corners
+    only (see its docstring).
+
+    Parameters
+    ----------
+    depth : numpy.ndarray
+        float (H, W) Euclidean distance transform of the narrow band (pixel centres at +0.5).
+    vertex_xy, keypoint_xy : numpy.ndarray
+        (2,) positions (x, y) of the key vertex (graph position) and of its keypoint.
+    half_width : float
+        Half the stroke width at the key vertex (px).
+    min_depth : float
+        Fraction of ``half_width``; 0 = always the keypoint (the authors' rule).
+    step : float
+        Sampling step along the segment (px).
+
+    Returns
+    -------
+    numpy.ndarray
+        (2,) the key vertex's new position.
+    """
+    from scipy.ndimage import map_coordinates
+
+    vertex_xy = np.asarray(vertex_xy, np.float64)
+    keypoint_xy = np.asarray(keypoint_xy, np.float64)
+    if min_depth <= 0:
+        return keypoint_xy.copy()
+    n = max(2, int(np.ceil(np.hypot(*(keypoint_xy - vertex_xy)) / step)) + 1)
+    t = np.linspace(0.0, 1.0, n)
+    pts = vertex_xy + t[:, None] * (keypoint_xy - vertex_xy)
+    d = map_coordinates(depth, [pts[:, 1] - 0.5, pts[:, 0] - 0.5], order=1, mode="nearest")
+    # never ask for more depth than the vertex itself has (thin strokes, off-centre graph vertices)
+    need = min(min_depth * half_width, float(d[0]))
+    shallow = np.flatnonzero(d < need - 1e-9)
+    if len(shallow) == 0:
+        return keypoint_xy.copy()
+    return pts[max(int(shallow[0]) - 1, 0)]
