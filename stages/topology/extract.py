@@ -77,7 +77,7 @@ class _Extractor:
                                          conf.min_component_vertices):
             self.add_terminal(int(self.comp_of[v]), v, (k, t))
             # onto the keypoint (paper §4.2), unless it sits at the ink's edge (see snap_position)
-            g.xy[v] = points[k] if depth is None or t != 5 else snap_position(
+            g.xy[v] = points[k] if depth is None or t == 1 else snap_position(
                 depth, self.graph_xy[v], points[k], 0.5 * float(g.width[v]), conf.keypoint_min_depth)
         self.arc_len = g.arc_length()
         self.turn_ptr, self.turn_ok = turn_table(g, arc_motions(g, conf.turn_probe_px), conf.turn_min_cos)

@@ -21,9 +21,9 @@ endpoint (on realvec_dev with ground-truth keypoints 15 % of the endpoints ended
 curves, scored as junctions).  When no tip is near, the key vertex may still lie on a passing chain;
 the allowed paths may then run through it (``pass_through_endpoints``).
 
-Key vertices then move onto their keypoints (paper §4.2) — a corner's only as far as
-:func:`snap_position` allows (the keypoint may sit at the side of the stroke; see the stage's
-docstring, "Corner keypoints at the ink's edge").
+Key vertices then move onto their keypoints (paper §4.2) — a corner's or junction's only as far
+as :func:`snap_position` allows (the keypoint may sit at the side of the stroke; see the stage's
+docstring, "Corner and junction keypoints at the ink's edge").
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def snap_position(depth: np.ndarray, vertex_xy: np.ndarray, keypoint_xy: np.ndar
     key vertex moves along the segment towards its keypoint only while the segment stays at least
     ``min_depth · half_width`` inside the band (``depth`` = distance to the nearest background pixel
     centre); a keypoint that deep or deeper is reached exactly.  The stage applies it to corners
-    only (see its docstring).
+    and junctions, not to endpoints (see its docstring).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Key vertices move onto corner keypoints only as far as the ink's centre region allows.
+"""Key vertices move onto corner and junction keypoints only as far as the ink's centre region allows.
 
 A corner keypoint near the band's edge (a stroke of two drawn side by side in one band:
 qd_dog_01_pencil, tu_angel_163_pencil on realvec_dev) dragged the curves through it against that
@@ -102,3 +102,25 @@ def test_snap_position_stops_where_the_band_gets_shallow():
     thin[9:11, :] = True
     dt = ndimage.distance_transform_edt(thin)
     np.testing.assert_allclose(snap_position(dt, [20.0, 10.0], [24.0, 10.0], 4.0, 0.8), [24.0, 10.0])
+
+
+def test_junction_keypoint_at_the_far_edge_of_the_bar_keeps_the_curve_ends_in_the_ink():
+    """A T whose junction keypoint sits 0.5 px inside the bar's far edge (a detection at the edge of
+    a blob): the curve ends stop inside the ink instead of sticking out to its edge."""
+    bar = np.array([[10.0, 14.0], [54.0, 14.0]])
+    stem = np.array([[32.0, 14.0], [32.0, 50.0]])
+    kp = np.array([32.0, 14.0 - 2.5])
+    d = Drawing(render((64, 64), [bar, stem], WIDTH), [bar, stem], WIDTH,
+                [(10.0, 14.0, 1), (54.0, 14.0, 1), (32.0, 50.0, 1), (*kp, 3)])
+    art = run(CFG, **synthetic_inputs(d))
+    ends = [np.asarray(p["xy"][i]) for p in art.data["paths"]
+            for i, k in zip((0, -1), p["end_keypoints"]) if k == 3]
+    assert ends
+    for e in ends:
+        assert abs(e[1] - 14.0) <= 2.5 - 0.4               # nearer the bar's centre line than the keypoint
+    art0 = run({**CFG, "keypoint_min_depth": 0.0}, **synthetic_inputs(d))
+    ends0 = [np.asarray(p["xy"][i]) for p in art0.data["paths"]
+             for i, k in zip((0, -1), p["end_keypoints"]) if k == 3]
+    assert ends0
+    for e in ends0:                                         # the authors' rule: onto the keypoint
+        np.testing.assert_allclose(e, kp, atol=1e-6)
