@@ -41,6 +41,25 @@ Choices made on purpose (vs. the paper and the authors' code)
   ≥ ``turn_min_cos`` (0 = "positive dot product").  Probing a few pixels away matters because the
   graph's Y vertices sit among singularities where single cross-sections are unreliable, and it
   does not depend on ``edge_curve`` (the authors' test passes blindly across added edges).
+  **The probe measures sliding, not arc length** (``turn_probe_max_px``, not in the paper): it
+  runs on until the steps have slid ``turn_probe_px`` *along* the traced curves (the sum of their
+  projected lengths), up to ``turn_probe_max_px`` of arc.  Where two strokes share one band (the
+  arms of an acute Λ below its tip, a stroke running into another) the graph reaches the Y vertex
+  over edges *across* the band, whose steps project to almost nothing; measured over 3 px of arc
+  the motion was ~0, read as "no information", and every turn there was allowed — so a path
+  could run up one arm, cross the band and come down the other (a U-turn the paper's test exists
+  to forbid).  Chosen to cover both arms, such a candidate ran along a stroke that another curve
+  also took (duplicated run + three curve ends at the tip: cr_test_193_pencil's two Λ tips, its
+  worst Hausdorff pixel 5.7 → 3.2 px).  Measured on realvec_dev (tests/benchmarks/
+  quality_realvec.py, detector keypoints; 20 of 106 drawings change): endpoint F1 median
+  0.857 → 0.872 (mean 0.838 → 0.850), junction F1 median 0.704 → 0.708 (mean 0.699 → 0.699),
+  Hausdorff median 3.00 both (≤ 3 px in 54 → 55 drawings, mean 3.81 → 3.67), dangling 21 → 19,
+  F1@2 0.9933 → 0.9936, duplicated length mean 136 → 113 px (median 36.8 → 39.8); output false
+  junctions 343 → 340.  Where a false junction has duplicated curves, the duplicate is mostly
+  *not* this: both paths are needed for the valence of their other ends (a side stroke or a
+  spurious endpoint/corner keypoint reached only along another stroke, with no junction keypoint
+  where it branches off) — see the issue note; making valences soft or coverage centre-line-only
+  in the selection was measured and not adopted.
   Allowed paths take the test at every valence-≥3 vertex (paper).  The coverage search applies it
   only at vertices flagged next to a singularity (authors' search), and when that finds no walk it
   searches again without it: on the scanned drawings the strict version left whole strokes
@@ -126,7 +145,7 @@ from stages.topology.config import TopologyConfig
 from stages.topology.extract import extract_topology
 from stages.topology.render import render_topology
 
-STAGE_VERSION = "3"
+STAGE_VERSION = "4"
 
 __all__ = ["STAGE_VERSION", "run", "render_topology", "TopologyConfig", "extract_topology"]
 

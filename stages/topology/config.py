@@ -23,6 +23,7 @@ class TopologyConfig:
     robust_min_new_pixels: int
     turn_probe_px: float
     turn_min_cos: float
+    turn_probe_max_px: float
     junction_zone_px: float
     pass_through_junctions: bool
     pass_through_endpoints: bool

@@ -80,7 +80,8 @@ class _Extractor:
             g.xy[v] = points[k] if depth is None or t == 1 else snap_position(
                 depth, self.graph_xy[v], points[k], 0.5 * float(g.width[v]), conf.keypoint_min_depth)
         self.arc_len = g.arc_length()
-        self.turn_ptr, self.turn_ok = turn_table(g, arc_motions(g, conf.turn_probe_px), conf.turn_min_cos)
+        motions = arc_motions(g, conf.turn_probe_px, conf.turn_probe_max_px)
+        self.turn_ptr, self.turn_ok = turn_table(g, motions, conf.turn_min_cos)
         self.search_turn_ok = near_singularity_only(g, self.turn_ptr, self.turn_ok)
         self.no_turn_test = np.ones_like(self.turn_ok)
         self.pixel_xy, self.pixel_flat = band_pixels(self.mask)

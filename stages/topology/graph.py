@@ -146,12 +146,17 @@ def _motion(root_a: complex, root_b: complex, delta: complex) -> complex:
     return 0.5 * m
 
 
-def arc_motions(g: WorkGraph, probe_px: float) -> np.ndarray:
+def arc_motions(g: WorkGraph, probe_px: float, probe_max_px: float | None = None) -> np.ndarray:
     """Motion towards the head of every arc whose head has valence ≥ 3.
 
     For arc ``x → v`` the motion is summed over the steps walking from ``x`` back along the chain of
-    valence-2 vertices (at most ``probe_px`` of arc length, at least one step), each step's
-    displacement projected on the root lines of its two vertices, all oriented towards ``v``.
+    valence-2 vertices, each step's displacement projected on the root lines of its two vertices, all
+    oriented towards ``v``, until the walk has slid ``probe_px`` along the traced curves (the sum of
+    the steps' projected lengths) or covered ``probe_max_px`` of arc length (at least one step).
+    ``probe_max_px`` = None or ≤ ``probe_px`` stops at ``probe_px`` of arc length instead.  Steps
+    *across* the traced curves (edges the graph added between two strokes of a merged band) project
+    to nearly nothing: counting them as probe length left a Y reached over such an edge with no
+    motion, and so with every turn allowed.
     Projecting on the roots measures the sliding over the traced curves rather than raw vertex jitter,
     and probing a few pixels away from ``v`` avoids the unreliable cross-sections right at a
     junction.
@@ -164,16 +169,20 @@ def arc_motions(g: WorkGraph, probe_px: float) -> np.ndarray:
     deg = g.degree
     out = np.zeros(len(g.indices), np.complex128)
     z = g.xy[:, 0] + 1j * g.xy[:, 1]
+    extend = probe_max_px is not None and probe_max_px > probe_px
+    max_len = probe_max_px if extend else np.inf
     for v in np.nonzero(deg >= 3)[0]:
         for a_out in range(g.indptr[v], g.indptr[v + 1]):
             a = g.arc_rev[a_out]                      # the arc x -> v
             prev, cur = v, g.indices[a_out]
-            m, length = 0j, 0.0
+            m, length, slid = 0j, 0.0, 0.0
             while True:
                 d = z[prev] - z[cur]
-                m += _motion(g.root[cur], g.root[prev], d)
+                step = _motion(g.root[cur], g.root[prev], d)
+                m += step
                 length += abs(d)
-                if length >= probe_px or deg[cur] != 2:
+                slid += abs(step) if extend else abs(d)
+                if slid >= probe_px or length >= max_len or deg[cur] != 2:
                     break
                 s, t = g.indptr[cur], g.indptr[cur + 1]
                 nxt = g.indices[s] if g.indices[s] != prev else g.indices[t - 1]

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from stages import synthetic
-from stages.artifact import unpack_ragged
+from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 from stages.synthetic import Drawing, render
 from stages.topology import run, render_topology
@@ -112,6 +112,38 @@ def test_y_junction_turn_test_forbids_branch_to_branch():
     assert _uncovered(art, synthetic_inputs(_fork(False))) == 0
     # The test is what removes it: allowing every turn brings the branch-to-branch path back.
     art, _ = _run(_fork(centre_keypoint=False), turn_min_cos=-1.0)
+    assert (1, 2) in _pairs(art)
+
+
+def _merged_hairpin_inputs() -> dict:
+    """A narrow Λ whose arms merge below its tip, traced as a Y reached over edges *across* the band.
+
+    Corner 0 at the tip (32, 6); endpoints 1 and 2 at the feet.  The stem runs down the merged part
+    to the Y vertex (32, 16); each arm leaves it by a 3 px edge across the band, whose vertices follow
+    the band's (vertical) root, as the traced graph does where two strokes share one band.
+    """
+    strokes = [np.array([[32.0, 6.0], [32.0, 16.0]]), np.array([[32.0, 16.0], [29.0, 16.0], [22.0, 60.0]]),
+               np.array([[32.0, 16.0], [35.0, 16.0], [42.0, 60.0]])]
+    d = Drawing(render((64, 64), strokes, 3.0), strokes, 3.0, [(32, 6, 5), (22, 60, 1), (42, 60, 1)])
+    inputs = synthetic_inputs(d)
+    g = inputs["graph"]
+    xy = np.asarray(g["vertex_xy"])
+    root = np.asarray(g["vertex_root"]).copy()
+    root[np.abs(xy[:, 1] - 16.0) < 0.6] = 1j
+    inputs["graph"] = Artifact(arrays={**g.arrays, "vertex_root": root.astype(np.complex64)}, data=g.data)
+    return inputs
+
+
+def test_y_turn_test_sees_past_edges_across_a_merged_band():
+    # Measured over 3 px of arc, the motion into the Y from either arm is the step across the band:
+    # zero, so "no information" allowed the U-turn foot -> Y -> other foot, a candidate running down
+    # both arms; chosen, it doubled an arm (cr_test_193_pencil).  The probe now runs on until it has
+    # slid turn_probe_px along the traced curves.
+    inputs = _merged_hairpin_inputs()
+    art = run(CFG, **inputs)
+    assert sorted(_pairs(art)) == [(0, 1), (0, 2)]
+    assert _uncovered(art, inputs) == 0
+    art = run({**CFG, "turn_probe_max_px": 0.0}, **inputs)     # plain 3 px of arc: the U-turn is back
     assert (1, 2) in _pairs(art)
 
 
