@@ -31,6 +31,7 @@ keypoints of generated drawings run through the real prep and keypoints stages.
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
@@ -43,7 +44,8 @@ import torch
 import torch.nn.functional as F
 
 from stages.evaluate.keypoints import MatchResult, match_keypoints
-from stages.keypoints.generator import GeneratorConfig, generate
+from stages.keypoints.generator import (GeneratorConfig, drawing_from_strokes, fit_strokes, generate,
+                                        read_quickdraw_ndjson)
 from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.labels import LabelRules
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
@@ -566,8 +568,8 @@ def train_class_branch(cfg: dict) -> dict:
 # Keypoint typing by local valence (stages/keypoints/valence.py)
 
 
-def _typing_samples(cfg: dict, count: int, seed: int):
-    """Generated drawings (``count``), then the vector drawings of ``train.type_classifier.vector``.
+def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
+    """Generated drawings (``count``), then (``vector``) those of ``train.type_classifier.vector``.
 
     Yields
     ------
@@ -578,7 +580,13 @@ def _typing_samples(cfg: dict, count: int, seed: int):
     rules = LabelRules.from_dict(cfg["train"]["labels"])
     for _ in range(count):
         yield generate(rng, gcfg, rules)
-    yield from vector_samples(cfg["train"]["type_classifier"].get("vector") or {}, rng, gcfg, rules)
+    if vector:
+        yield from vector_samples(cfg["train"]["type_classifier"].get("vector") or {}, rng, gcfg, rules)
+
+
+def _vector_files(vcfg: dict) -> list[str]:
+    """The files matched by the glob patterns ``vcfg["files"]``, sorted, each once."""
+    return sorted({f for pat in vcfg.get("files") or [] for f in glob.glob(str(pat))})
 
 
 def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules):
@@ -595,13 +603,8 @@ def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, 
     ------
     stages.keypoints.generator.Sample
     """
-    import glob
-
-    from stages.keypoints.generator import drawing_from_strokes, fit_strokes, read_quickdraw_ndjson
-
-    files = sorted({f for pat in vcfg.get("files") or [] for f in glob.glob(str(pat))})
     lo, hi = (int(v) for v in vcfg.get("size", [384, 512]))
-    for f in files:
+    for f in _vector_files(vcfg):
         for strokes in read_quickdraw_ndjson(f)[int(vcfg.get("skip", 0)):]:
             strokes = [s for s in strokes if len(s) >= 2]
             if not strokes:
@@ -647,8 +650,7 @@ def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) 
 
     kcfg = dict(cfg["keypoints"], typing="argmax")
     feats, labels = [], []
-    tcfg = cfg["train"]["type_classifier"] if vector else dict(cfg["train"]["type_classifier"], vector=None)
-    for s in _typing_samples(dict(cfg, train=dict(cfg["train"], type_classifier=tcfg)), count, seed):
+    for s in _typing_samples(cfg, count, seed, vector):
         if not len(s.points):
             continue
         buf = io.BytesIO()
@@ -724,9 +726,7 @@ def train_type_classifier(cfg: dict) -> dict:
     t_data = time.time() - t0
     clf = fit_type_classifier(x, y, tc)
     # Class scores are the first three features: their argmax is the paper's typing.
-    import glob
-
-    vfiles = sorted({f for pat in (tc.get("vector") or {}).get("files") or [] for f in glob.glob(str(pat))})
+    vfiles = _vector_files(tc.get("vector") or {})
     record = {"mode": "type_classifier", "keypoints": int(len(y)), "val_keypoints": int(len(vy)),
               "vector_files": [Path(f).name for f in vfiles],
               "class_counts": np.bincount(y, minlength=3).tolist(), "data_seconds": t_data,
