@@ -322,16 +322,20 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
         return t == 0 and o["end_types"][g] == 0 and o["end_keypoints"][g] < 0 and \
             np.hypot(*(c["points"][0 if f == 0 else -1] - o["points"][0 if g == 0 else -1])) <= _SAME_POINT_PX
 
+    # The meeting keeps the keypoint that more curves met; on a tie (one curve at each end: two ends
+    # meet, a corner) a corner keypoint wins, so the ends are not joined or extended there.
+    rank = {5: 3, 3: 2, 1: 1, 0: 0}
     while True:
         found = None
+        lengths = [_length(c["points"]) for c in curves]
         for i, c in enumerate(curves):
             longest = max(max_px, max_widths * float(c.get("width") or 0.0))
-            if _length(c["points"]) > longest:
+            if lengths[i] > longest:
                 continue
             met = [[(j, g) for j, o in enumerate(curves) if j != i for g in (0, 1) if same(c, f, o, g)]
                    for f in (0, 1)]
             if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}) \
-                    and all(_length(curves[j]["points"]) > longest for j, _ in met[0] + met[1]):
+                    and all(lengths[j] > longest for j, _ in met[0] + met[1]):
                 found = (i, met)
                 break
         if found is None:
@@ -339,9 +343,6 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
         i, met = found
         link = curves[i]
         mid = 0.5 * (link["points"][0] + link["points"][-1])
-        # The meeting keeps the keypoint that more curves met; on a tie (one curve at each end: two
-        # ends meet, a corner) a corner keypoint wins, so the ends are not joined or extended there.
-        rank = {5: 3, 3: 2, 1: 1, 0: 0}
         f = max((0, 1), key=lambda e: (len(met[e]), rank.get(link["end_types"][e], 0), -e))
         t, k = link["end_types"][f], link["end_keypoints"][f]
         for j, g in met[0] + met[1]:
