@@ -29,6 +29,7 @@ docstring, "Corner and junction keypoints at the ink's edge").
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import map_coordinates
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
@@ -160,8 +161,6 @@ def snap_position(depth: np.ndarray, vertex_xy: np.ndarray, keypoint_xy: np.ndar
     numpy.ndarray
         (2,) the key vertex's new position.
     """
-    from scipy.ndimage import map_coordinates
-
     vertex_xy = np.asarray(vertex_xy, np.float64)
     keypoint_xy = np.asarray(keypoint_xy, np.float64)
     if min_depth <= 0:
