@@ -141,7 +141,7 @@ def test_type_classifier_training_smoke(tmp_path):
 
 
 def _write_ndjson(path, n):
-    """``n`` Quick, Draw!-style drawings: drawing i is a T whose bar is i + 1 units long... scaled up."""
+    """``n`` Quick, Draw!-style drawings: drawing i is a T, bar 100 + 50 i long, stem 120 long from its middle."""
     import json
 
     with open(path, "w") as f:
@@ -160,8 +160,9 @@ def test_vector_samples_skip_renders_and_labels(tmp_path):
 
     ndjson = tmp_path / "doodles.ndjson"
     _write_ndjson(ndjson, 3)
-    gcfg = GeneratorConfig.from_dict(yaml.safe_load((CONF / "train" / "default.yaml").read_text())["generator"])
-    rules = LabelRules.from_dict(yaml.safe_load((CONF / "train" / "default.yaml").read_text())["labels"])
+    train_cfg = yaml.safe_load((CONF / "train" / "default.yaml").read_text())
+    gcfg = GeneratorConfig.from_dict(train_cfg["generator"])
+    rules = LabelRules.from_dict(train_cfg["labels"])
     vcfg = {"files": [str(tmp_path / "*.ndjson")], "skip": 1, "renders": 2, "size": [100, 140]}
     samples = list(vector_samples(vcfg, np.random.default_rng(0), gcfg, rules))
     assert len(samples) == 4  # drawings 1 and 2, twice each

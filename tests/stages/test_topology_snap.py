@@ -38,14 +38,15 @@ def _off_centre(p) -> float:
     return min(np.hypot(max(10 - x, 0, x - 40), y - 14), np.hypot(x - 40, max(14 - y, 0, y - 50)))
 
 
+def _ends_at(art, keypoint: int) -> list[np.ndarray]:
+    """Positions where the paths end on keypoint index ``keypoint``."""
+    return [np.asarray(p["xy"][i]) for p in art.data["paths"]
+            for i, k in zip((0, -1), p["end_keypoints"]) if k == keypoint]
+
+
 def _corner_ends(art) -> list[np.ndarray]:
     """Positions where the paths end on the corner keypoint (index 2)."""
-    out = []
-    for p in art.data["paths"]:
-        for i, k in zip((0, -1), p["end_keypoints"]):
-            if k == 2:
-                out.append(np.asarray(p["xy"][i]))
-    return out
+    return _ends_at(art, 2)
 
 
 @pytest.mark.parametrize("offset", [2.4, 2.6])
@@ -113,14 +114,12 @@ def test_junction_keypoint_at_the_far_edge_of_the_bar_keeps_the_curve_ends_in_th
     d = Drawing(render((64, 64), [bar, stem], WIDTH), [bar, stem], WIDTH,
                 [(10.0, 14.0, 1), (54.0, 14.0, 1), (32.0, 50.0, 1), (*kp, 3)])
     art = run(CFG, **synthetic_inputs(d))
-    ends = [np.asarray(p["xy"][i]) for p in art.data["paths"]
-            for i, k in zip((0, -1), p["end_keypoints"]) if k == 3]
+    ends = _ends_at(art, 3)
     assert ends
     for e in ends:
         assert abs(e[1] - 14.0) <= 2.5 - 0.4               # nearer the bar's centre line than the keypoint
     art0 = run({**CFG, "keypoint_min_depth": 0.0}, **synthetic_inputs(d))
-    ends0 = [np.asarray(p["xy"][i]) for p in art0.data["paths"]
-             for i, k in zip((0, -1), p["end_keypoints"]) if k == 3]
+    ends0 = _ends_at(art0, 3)
     assert ends0
     for e in ends0:                                         # the authors' rule: onto the keypoint
         np.testing.assert_allclose(e, kp, atol=1e-6)
