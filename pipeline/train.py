@@ -6,8 +6,9 @@ Usage::
     polyvec-train train.steps=2000 train.out_dir=runs/small train.network.level_channels=[8,16,32,64]
 
 What it does, per step: a batch of crops of procedural drawings (stages/keypoints/generator.py,
-generated on the fly by DataLoader workers, each drawing a pure function of (seed, worker, index)),
-prep's contrast normalisation and narrow band, the authors' network-input normalisation, Gaussian
+generated on the fly by DataLoader workers, each drawing a pure function of (seed, worker, index);
+with ``train.vector_prob`` > 0 that share of the drawings are human strokes of ``train.vector``, restyled
+each time), prep's contrast normalisation and narrow band, the authors' network-input normalisation, Gaussian
 targets (σ = ``sigma``), random flips / quarter turns, the masked asymmetric loss of Eq. 1, Adam with
 cosine annealing. Crops grow in size during training (``crop_schedule``; the authors train on
 80×80 crops of growing-resolution images). Every ``checkpoint_every`` steps ``last.pt`` is written
@@ -90,7 +91,11 @@ def prepare_sample(sample, cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 class DrawingStream(torch.utils.data.IterableDataset):
-    """Endless crops of procedural drawings; worker ``k`` draws from seed (seed, start, k)."""
+    """Endless crops of training drawings; worker ``k`` draws from seed (seed, start, k).
+
+    A share ``train.vector_prob`` of the drawings are human strokes (:func:`vector_pool`, restyled
+    by :func:`render_vector` every time one is drawn); the rest are procedural.
+    """
 
     def __init__(self, cfg: dict, crop: int, start: int):
         self.cfg, self.crop, self.start = cfg, crop, start
@@ -101,11 +106,19 @@ class DrawingStream(torch.utils.data.IterableDataset):
         rng = np.random.default_rng([int(self.cfg["train"]["seed"]), self.start, wid])
         gcfg = GeneratorConfig.from_dict(self.cfg["train"]["generator"])
         rules = LabelRules.from_dict(self.cfg["train"]["labels"])
-        per = int(self.cfg["train"]["crops_per_image"])
+        tc = self.cfg["train"]
         c = self.crop
-        kp_prob = float(self.cfg["train"]["keypoint_crop_prob"])
+        kp_prob = float(tc["keypoint_crop_prob"])
+        vprob = float(tc.get("vector_prob") or 0.0)
+        vcfg = tc.get("vector") or {}
+        pool = vector_pool(vcfg) if vprob > 0 else []
         while True:
-            sample = generate(rng, gcfg, rules)
+            if pool and rng.random() < vprob:
+                sample = render_vector(rng, pool[rng.integers(len(pool))], vcfg, gcfg, rules)
+                per = int(tc["vector_crops_per_image"])
+            else:
+                sample = generate(rng, gcfg, rules)
+                per = int(tc["crops_per_image"])
             x, t, b = prepare_sample(sample, self.cfg)
             pts = sample.points
             h, w = x.shape
@@ -569,7 +582,7 @@ def train_class_branch(cfg: dict) -> dict:
 
 
 def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
-    """Generated drawings (``count``), then (``vector``) those of ``train.type_classifier.vector``.
+    """Generated drawings (``count``), then (``vector``) the human strokes of ``train.vector``.
 
     Yields
     ------
@@ -581,7 +594,7 @@ def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
     for _ in range(count):
         yield generate(rng, gcfg, rules)
     if vector:
-        yield from vector_samples(cfg["train"]["type_classifier"].get("vector") or {}, rng, gcfg, rules)
+        yield from vector_samples(cfg["train"].get("vector") or {}, rng, gcfg, rules)
 
 
 def _vector_files(vcfg: dict) -> list[str]:
@@ -589,29 +602,46 @@ def _vector_files(vcfg: dict) -> list[str]:
     return sorted({f for pat in vcfg.get("files") or [] for f in glob.glob(str(pat))})
 
 
+def vector_pool(vcfg: dict) -> list[list[np.ndarray]]:
+    """The human-stroke drawings of ``vcfg`` (``train.vector``), in file order.
+
+    ``files`` are glob patterns relative to the working directory; the first ``skip`` drawings of
+    every file are left out (the realvec_dev development cases were made from the first five of
+    each Quick, Draw! file, so they never reach training). Strokes of fewer than two points are
+    dropped, and drawings left empty with them.
+    """
+    pool = []
+    for f in _vector_files(vcfg):
+        for strokes in read_quickdraw_ndjson(f)[int(vcfg.get("skip", 0)):]:
+            strokes = [s for s in strokes if len(s) >= 2]
+            if strokes:
+                pool.append(strokes)
+    return pool
+
+
+def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], vcfg: dict, gcfg: GeneratorConfig,
+                  rules: LabelRules):
+    """One styled, labelled rendering of a human-stroke drawing on a square canvas of side ``vcfg["size"]``."""
+    lo, hi = (int(v) for v in vcfg.get("size", [384, 512]))
+    size = int(rng.integers(lo, hi + 1))
+    return drawing_from_strokes(rng, fit_strokes(strokes, size), (size, size), gcfg, rules)
+
+
 def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules):
     """Human strokes from Quick, Draw! ndjson files, styled and labelled like the generated drawings.
 
-    ``vcfg`` (``train.type_classifier.vector``): ``files`` (glob patterns, relative to the working
-    directory), ``skip`` (drawings left out at the start of every file: the realvec_dev development
-    cases were made from the first five of each Quick, Draw! file, so they never reach training),
-    ``renders`` (styled copies per drawing, each with its own width, style and canvas size) and
-    ``size`` ([min, max] canvas side). The strokes keep their hand jitter, overdraw and near-touching
-    ends — what the procedural generator lacks — and their keypoints come from the same label rules.
+    ``vcfg`` (``train.vector``): ``files`` and ``skip`` (:func:`vector_pool`), ``renders`` (styled
+    copies per drawing, each with its own width, style and canvas size) and ``size`` ([min, max]
+    canvas side). The strokes keep their hand jitter, overdraw and near-touching ends — what the
+    procedural generator lacks — and their keypoints come from the same label rules.
 
     Yields
     ------
     stages.keypoints.generator.Sample
     """
-    lo, hi = (int(v) for v in vcfg.get("size", [384, 512]))
-    for f in _vector_files(vcfg):
-        for strokes in read_quickdraw_ndjson(f)[int(vcfg.get("skip", 0)):]:
-            strokes = [s for s in strokes if len(s) >= 2]
-            if not strokes:
-                continue
-            for _ in range(int(vcfg.get("renders", 1))):
-                size = int(rng.integers(lo, hi + 1))
-                yield drawing_from_strokes(rng, fit_strokes(strokes, size), (size, size), gcfg, rules)
+    for strokes in vector_pool(vcfg):
+        for _ in range(int(vcfg.get("renders", 1))):
+            yield render_vector(rng, strokes, vcfg, gcfg, rules)
 
 
 def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -629,7 +659,7 @@ def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) 
     count, seed : int
         Number of generated drawings and the seed of all randomness.
     vector : bool
-        Also use the vector drawings of ``train.type_classifier.vector`` (:func:`vector_samples`).
+        Also use the human strokes of ``train.vector`` (:func:`vector_samples`).
 
     Returns
     -------
@@ -721,12 +751,13 @@ def train_type_classifier(cfg: dict) -> dict:
     out = Path(cfg["train"]["out_dir"])
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    x, y = type_classifier_data(cfg, int(tc["drawings"]), int(tc["seed"]))
+    use_vector = bool(tc.get("vector", True))
+    x, y = type_classifier_data(cfg, int(tc["drawings"]), int(tc["seed"]), vector=use_vector)
     vx, vy = type_classifier_data(cfg, int(tc["val_drawings"]), int(tc["val_seed"]), vector=False)
     t_data = time.time() - t0
     clf = fit_type_classifier(x, y, tc)
     # Class scores are the first three features: their argmax is the paper's typing.
-    vfiles = _vector_files(tc.get("vector") or {})
+    vfiles = _vector_files(cfg["train"].get("vector") or {}) if use_vector else []
     record = {"mode": "type_classifier", "keypoints": int(len(y)), "val_keypoints": int(len(vy)),
               "vector_files": [Path(f).name for f in vfiles],
               "class_counts": np.bincount(y, minlength=3).tolist(), "data_seconds": t_data,

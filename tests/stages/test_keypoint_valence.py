@@ -130,8 +130,8 @@ def test_type_classifier_training_smoke(tmp_path):
     _write_ndjson(ndjson, 3)
     cfg = compose_plain(CONF, [f"train.out_dir={tmp_path}", "train.type_classifier.drawings=4",
                                "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20",
-                               f"train.type_classifier.vector.files=[{ndjson}]",
-                               "train.type_classifier.vector.skip=2", "train.type_classifier.vector.size=[96,128]"])
+                               f"train.vector.files=[{ndjson}]",
+                               "train.vector.skip=2", "train.vector.size=[96,128]"])
     rec = train_type_classifier(cfg)
     assert rec["keypoints"] > 0 and sum(rec["class_counts"]) == rec["keypoints"]
     assert rec["vector_files"] == ["doodles.ndjson"]
@@ -174,3 +174,41 @@ def test_vector_samples_skip_renders_and_labels(tmp_path):
     ratios = sorted({round(float(np.ptp(s.strokes[0][:, 0]) / np.ptp(s.strokes[1][:, 1])), 2) for s in samples})
     assert ratios == [round(150 / 120, 2), round(200 / 120, 2)]
     assert list(vector_samples({"files": [str(tmp_path / "none*.ndjson")]}, np.random.default_rng(0), gcfg, rules)) == []
+
+
+def test_detector_stream_mixes_human_strokes(tmp_path, monkeypatch):
+    """``train.vector_prob`` is the share of detector-training drawings drawn from the human strokes;
+    each of those gives ``vector_crops_per_image`` crops, and 0 keeps training procedural only."""
+    import itertools
+
+    import pipeline.train as tr
+
+    ndjson = tmp_path / "doodles.ndjson"
+    _write_ndjson(ndjson, 3)
+    calls = {"vector": 0, "generated": 0}
+    real_render, real_generate = tr.render_vector, tr.generate
+
+    def render(*a, **k):
+        calls["vector"] += 1
+        return real_render(*a, **k)
+
+    def gen(*a, **k):
+        calls["generated"] += 1
+        return real_generate(*a, **k)
+
+    monkeypatch.setattr(tr, "render_vector", render)
+    monkeypatch.setattr(tr, "generate", gen)
+
+    def crops(prob, n):
+        cfg = tr.compose_plain(CONF, [f"train.vector.files=[{ndjson}]", "train.vector.skip=1",
+                                      "train.vector.size=[96,128]", f"train.vector_prob={prob}",
+                                      "train.vector_crops_per_image=3", "train.crops_per_image=2"])
+        calls.update(vector=0, generated=0)
+        out = list(itertools.islice(iter(tr.DrawingStream(cfg, 64, 0)), n))
+        assert all(x.shape == (1, 64, 64) and t.shape == (4, 64, 64) for x, t, _ in out)
+        return dict(calls)
+
+    assert crops(1.0, 9) == {"vector": 3, "generated": 0}
+    assert crops(0.0, 8) == {"vector": 0, "generated": 4}
+    mixed = crops(0.5, 60)
+    assert mixed["vector"] > 0 and mixed["generated"] > 0
