@@ -78,7 +78,11 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     else:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
-        model.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
+        # keypoints.pt (exported) keeps "state_dict"; a training checkpoint (last.pt) keeps "model".
+        sd = ckpt.get("state_dict", ckpt.get("model"))
+        if sd is None:
+            raise InputError(f"keypoints.weights: {path} is not a polyvec-train checkpoint")
+        model.load_state_dict({k: v.float() for k, v in sd.items()})
         name = f"{path.name}@{_file_hash(path)}"
     model.eval()
     _MODELS[key] = (model, name)

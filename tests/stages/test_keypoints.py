@@ -12,6 +12,7 @@ import yaml
 
 from stages import synthetic
 from stages.artifact import Artifact
+from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
 from stages.keypoints.generator import (GeneratorConfig, generate, read_quickdraw_ndjson, read_svg_strokes,
@@ -261,6 +262,13 @@ def test_training_smoke_loss_decreases(tmp_path):
     assert rec["steps"] == 12 and (tmp_path / "keypoints.pt").is_file() and (tmp_path / "last.pt").is_file()
     model, _ = load_model(tmp_path / "keypoints.pt")
     assert isinstance(model, KeypointNet)
+    # keypoints.weights may name the training checkpoint too (to score it before exporting)
+    resumed, _ = load_model(tmp_path / "last.pt")
+    for k, v in model.state_dict().items():
+        assert torch.allclose(v.float(), resumed.state_dict()[k].float(), atol=2e-3, rtol=2e-3), k
+    torch.save({"network": {}, "weights": {}}, tmp_path / "other.pt")
+    with pytest.raises(InputError, match="not a polyvec-train checkpoint"):
+        load_model(tmp_path / "other.pt")
     curve = rec["loss_curve"]
     assert len(curve) == 12 and np.mean(curve[-3:]) < np.mean(curve[:3])
 
