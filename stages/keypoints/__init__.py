@@ -77,9 +77,12 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
         model, name = KeypointNet(NetConfig()), "untrained"
     else:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
         # keypoints.pt (exported) keeps "state_dict"; a training checkpoint (last.pt) keeps "model".
-        sd = ckpt.get("state_dict", ckpt.get("model"))
+        sd = ckpt.get("state_dict", ckpt.get("model")) if isinstance(ckpt, dict) else None
+        try:
+            model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
+        except (KeyError, TypeError):
+            sd = None
         if sd is None:
             raise InputError(f"keypoints.weights: {path} is not a polyvec-train checkpoint")
         model.load_state_dict({k: v.float() for k, v in sd.items()})
