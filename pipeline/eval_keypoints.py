@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m pipeline.eval_keypoints DIR [--weights PATH] [--threshold 0.5] [--min-distance 3]
+    python -m pipeline.eval_keypoints DIR [--weights PATH] [--ensemble [PATH ...]] [--threshold 0.5] [--min-distance 3]
                                           [--typing valence|argmax] [--type-classifier NPZ]
                                           [--limit N] [--render OUT_DIR] [--json OUT.json]
 
@@ -110,7 +110,8 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     n = max(len(cases), 1)
     summary = {
         "cases": len(cases),
-        "weights": kp_stage.load_model(kp_cfg["weights"])[1],
+        "weights": "+".join(kp_stage.load_model(w)[1]
+                            for w in [kp_cfg["weights"], *(kp_cfg.get("detection_ensemble") or [])]),
         "radius_px": radius,
         "f1_matched_pooled": pooled.f1, "precision_pooled": pooled.precision, "recall_pooled": pooled.recall,
         "accuracy_pooled": pooled.accuracy,
@@ -142,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline.eval_keypoints", description=__doc__.split("\n\n")[0])
     ap.add_argument("folder", type=Path)
     ap.add_argument("--weights", default=None, help="checkpoint (default: the packaged weights)")
+    ap.add_argument("--ensemble", nargs="*", default=None, metavar="WEIGHTS",
+                    help="detection ensemble (default: the config's); give no value for the main network alone")
     ap.add_argument("--threshold", type=float, default=None)
     ap.add_argument("--min-distance", type=int, default=None)
     ap.add_argument("--typing", choices=("valence", "argmax"), default=None,
@@ -155,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.folder.exists():
         print(f"error: {args.folder} does not exist", file=sys.stderr)
         return 2
-    res = evaluate_folder(args.folder, {"weights": args.weights, "threshold": args.threshold,
+    res = evaluate_folder(args.folder, {"weights": args.weights, "detection_ensemble": args.ensemble,
+                                        "threshold": args.threshold,
                                         "min_distance": args.min_distance, "typing": args.typing,
                                         "type_classifier": args.type_classifier}, args.radius, args.limit, args.render)
     s = res["summary"]

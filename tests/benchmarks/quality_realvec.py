@@ -94,7 +94,7 @@ def _source_hash(stage: str) -> str:
         for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
             h.update(f.read_bytes())
     if stage == "keypoints":  # the packaged network and type classifier are inputs of the stage too
-        for name in ("keypoints.pt", "type_classifier.npz"):
+        for name in ("keypoints.pt", "type_classifier.npz", "keypoints_procedural.pt"):
             w = ROOT / "stages" / "keypoints" / "weights" / name
             h.update(w.read_bytes() if w.is_file() else b"untrained")
     return h.hexdigest()

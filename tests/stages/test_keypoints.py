@@ -205,10 +205,30 @@ def test_run_artifact_contract():
     assert a["types"].dtype == np.int8 and a["scores"].dtype == np.float32
     assert len(a.data["points"]) == len(a["points"])
     assert set(a["types"].tolist()) <= {1, 3, 5}
-    assert STAGE_VERSION.startswith("2+") and a.data["weights"]
+    assert STAGE_VERSION.startswith("3+") and a.data["weights"]
     assert torch.get_num_threads() == 1
     img = render_keypoints(d.grey, a["heatmaps"], a["points"], a["types"])
     assert img.shape == (48, 48, 3) and img.dtype == np.uint8
+
+
+def test_detection_ensemble_averages_h1_and_keeps_class_maps():
+    """The default config averages H1 of the main and the procedural network; the class maps (which
+    the typing perceptron reads) stay the main network's; ``detection_ensemble: []`` is the main one alone."""
+    d = synthetic.cross(size=64)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    cfg = _cfg()
+    assert cfg["detection_ensemble"] == ["packaged_procedural"]
+    both = run(cfg, prep=prep)
+    main = run(dict(cfg, detection_ensemble=[]), prep=prep)
+    other = run(dict(cfg, weights="packaged_procedural", detection_ensemble=[]), prep=prep)
+    np.testing.assert_array_equal(both["heatmaps"][1:], main["heatmaps"][1:])
+    lo = np.minimum(main["heatmaps"][0], other["heatmaps"][0]) - 1e-5
+    hi = np.maximum(main["heatmaps"][0], other["heatmaps"][0]) + 1e-5
+    assert np.all((both["heatmaps"][0] >= lo) & (both["heatmaps"][0] <= hi))
+    assert not np.allclose(both["heatmaps"][0], main["heatmaps"][0], atol=1e-3)
+    assert "keypoints_procedural.pt@" in both.data["weights"]
+    with pytest.raises(InputError, match="no such file"):
+        run(dict(cfg, detection_ensemble=["/nonexistent/net.pt"]), prep=prep)
 
 
 def test_weights_load_on_cpu():
@@ -332,3 +352,24 @@ def test_readers_on_shared_vector_data():
     strokes, size = read_svg_strokes(angel)
     allp = np.concatenate(strokes)
     assert len(strokes) > 1 and allp.min() > -5 and allp.max() < max(size) + 5
+
+
+def test_eval_keypoints_cli_scores_a_folder(tmp_path):
+    """``python -m pipeline.eval_keypoints DIR`` scores drawings against their JSON keypoints, with the
+    config's detection ensemble by default and the main network alone with a bare ``--ensemble``."""
+    from PIL import Image
+
+    from pipeline.eval_keypoints import main
+
+    d = synthetic.cross(size=96, length=70.0)
+    Image.fromarray((d.grey * 255).round().astype(np.uint8)).save(tmp_path / "x.png")
+    ends = [p.tolist() for s in d.strokes for p in (s[0], s[-1])]
+    centre = np.mean([s.mean(0) for s in d.strokes], 0).tolist()
+    (tmp_path / "x.json").write_text(json.dumps({"endpoints": ends, "junctions": [centre], "corners": []}))
+    for extra, procedural in (([], True), (["--ensemble"], False)):
+        out = tmp_path / f"kp{len(extra)}.json"
+        assert main([str(tmp_path), "--json", str(out), *extra]) == 0
+        s = json.loads(out.read_text())["summary"]
+        assert s["cases"] == 1 and 0.0 <= s["f1_matched_pooled"] <= 1.0
+        assert ("keypoints_procedural.pt@" in s["weights"]) == procedural
+    assert main([str(tmp_path / "missing")]) == 2
