@@ -20,7 +20,8 @@ detector the main network was fine-tuned from (``weights/keypoints_procedural.pt
 on human strokes raised recall on realvec_dev (0.840 → 0.869) and class accuracy, but fired more
 false corners (precision 0.912 → 0.853, one-to-one F1 0.874 → 0.861); the mean of the two H1 maps
 keeps most of the recall with the old precision (F1 0.877, P 0.893, R 0.862). The class maps stay
-the main network's, on which the typing perceptron is trained. It costs a second network pass.
+the main network's, on which the typing perceptron is trained. It costs a second pass of the trunk
+(the class branch is skipped there).
 ``detection_ensemble: []`` runs the main network alone.
 """
 
@@ -166,7 +167,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         h1 = heatmaps[0].copy()
         for w in ensemble:
             other, other_name = load_model(w)
-            h1 += predict_heatmaps(other, x, *tiles)[0]
+            h1 += predict_heatmaps(other, x, *tiles, detection_only=True)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
     band = None

@@ -66,7 +66,8 @@ def _tile_starts(n: int, tile: int, step: int) -> list[int]:
     return starts
 
 
-def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int) -> np.ndarray:
+def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int,
+                     detection_only: bool = False) -> np.ndarray:
     """Heatmaps H1..H4 of a normalised drawing, tiled with blended overlaps when large.
 
     Parameters
@@ -77,11 +78,13 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
         (H, W) network input (1 = ink); padded here to the network's multiple.
     tile_size, tile_overlap : int
         Tile side and overlap in pixels (rounded down to the network's multiple).
+    detection_only : bool
+        Compute H1 alone (``model.detect``), skipping the class branch.
 
     Returns
     -------
     numpy.ndarray
-        float32 (4, H, W) (cropped back to the input size).
+        float32 (4, H, W), or (1, H, W) with ``detection_only`` (cropped back to the input size).
     """
     m = model.multiple
     h, w = x.shape
@@ -90,18 +93,19 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
     tile = max(m, tile_size // m * m)
     overlap = min(tile_overlap // m * m, tile - m)
     t = torch.from_numpy(xp)[None, None]
+    net = model.detect if detection_only else (lambda a: model(a)[0])
     with torch.inference_mode():
         if hp <= tile and wp <= tile:
-            out = model(t)[0][0].float().numpy()
+            out = net(t)[0].float().numpy()
             return np.ascontiguousarray(out[:, :h, :w])
-        acc = np.zeros((4, hp, wp), np.float32)
+        acc = np.zeros((1 if detection_only else 4, hp, wp), np.float32)
         wsum = np.zeros((hp, wp), np.float32)
         ramp = np.minimum(np.arange(tile) + 0.5, np.arange(tile)[::-1] + 0.5) / max(overlap, 1)
         ramp = np.clip(ramp, 1e-3, 1.0).astype(np.float32)
         for i0 in _tile_starts(hp, tile, tile - overlap):
             for j0 in _tile_starts(wp, tile, tile - overlap):
                 th, tw = min(tile, hp), min(tile, wp)
-                y = model(t[..., i0:i0 + th, j0:j0 + tw])[0][0].float().numpy()
+                y = net(t[..., i0:i0 + th, j0:j0 + tw])[0].float().numpy()
                 wt = ramp[:th, None] * ramp[None, :tw] if (th == tile and tw == tile) else \
                     np.outer(ramp[:th] if th == tile else np.ones(th), ramp[:tw] if tw == tile else np.ones(tw))
                 acc[:, i0:i0 + th, j0:j0 + tw] += y * wt

@@ -202,6 +202,11 @@ class KeypointNet(nn.Module):
                 intermediate.append(torch.tanh(self.side[k](f)))
         return f, intermediate
 
+    def detect(self, x: torch.Tensor) -> torch.Tensor:
+        """H1 alone, (B, 1, H, W): skips the full-resolution class branch (a detection ensemble
+        member only contributes H1)."""
+        return torch.tanh(self.side[0](self.trunk(x)[0]))
+
     def forward(self, x: torch.Tensor, return_logits: bool = False):
         f, intermediate = self.trunk(x)
         h1 = torch.tanh(self.side[0](f))

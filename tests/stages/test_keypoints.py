@@ -194,6 +194,11 @@ def test_tiles_blend_without_seams():
     tiled = predict_heatmaps(net, x, 64, 32)
     assert whole.shape == tiled.shape == (4,) + x.shape
     assert np.abs(whole - tiled).max() < 0.05
+    # H1 alone (an ensemble member's pass) is the full pass's H1, whole and tiled
+    for tile, full in ((4096, whole), (64, tiled)):
+        h1 = predict_heatmaps(net, x, tile, 32 if tile == 64 else 64, detection_only=True)
+        assert h1.shape == (1,) + x.shape
+        np.testing.assert_allclose(h1[0], full[0], atol=1e-5)
 
 
 def test_run_artifact_contract():
