@@ -78,6 +78,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     pngs = [folder] if folder.is_file() else sorted(folder.glob("*.png"))
     cases, pooled = [], MatchResult()
     t_total = 0.0
+    weights_name = None  # the stage's own name for the networks it ran (main + ensemble)
     for png in pngs:
         gt = load_ground_truth(png)
         if gt is None:
@@ -91,6 +92,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         dt = time.perf_counter() - t0
         t_total += dt
         pts, types = a["points"], a["types"]
+        weights_name = a.data["weights"]
         h = p["grey"].shape[0]
         h_pad = h + (8 - h % 8)  # the authors' padded network input height
         m = match_keypoints(gpts, gtypes, pts, types, radius)
@@ -110,8 +112,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     n = max(len(cases), 1)
     summary = {
         "cases": len(cases),
-        "weights": "+".join(kp_stage.load_model(w)[1]
-                            for w in [kp_cfg["weights"], *(kp_cfg.get("detection_ensemble") or [])]),
+        "weights": weights_name,
         "radius_px": radius,
         "f1_matched_pooled": pooled.f1, "precision_pooled": pooled.precision, "recall_pooled": pooled.recall,
         "accuracy_pooled": pooled.accuracy,

@@ -103,10 +103,10 @@ class DrawingStream(torch.utils.data.IterableDataset):
     def __iter__(self):
         info = torch.utils.data.get_worker_info()
         wid = info.id if info is not None else 0
-        rng = np.random.default_rng([int(self.cfg["train"]["seed"]), self.start, wid])
-        gcfg = GeneratorConfig.from_dict(self.cfg["train"]["generator"])
-        rules = LabelRules.from_dict(self.cfg["train"]["labels"])
         tc = self.cfg["train"]
+        rng = np.random.default_rng([int(tc["seed"]), self.start, wid])
+        gcfg = GeneratorConfig.from_dict(tc["generator"])
+        rules = LabelRules.from_dict(tc["labels"])
         c = self.crop
         kp_prob = float(tc["keypoint_crop_prob"])
         vprob = float(tc.get("vector_prob") or 0.0)

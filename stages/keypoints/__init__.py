@@ -47,6 +47,7 @@ PACKAGED_TYPE_CLASSIFIER = WEIGHTS_DIR / "type_classifier.npz"
 # The procedural-only detector (keypoints.pt before it was fine-tuned on human strokes): its H1 is
 # averaged with the main network's (``detection_ensemble``); see MODEL_CARD.md.
 PACKAGED_PROCEDURAL = WEIGHTS_DIR / "keypoints_procedural.pt"
+_PACKAGED_NETWORKS = {"packaged": PACKAGED_WEIGHTS, "packaged_procedural": PACKAGED_PROCEDURAL}
 
 
 def _file_hash(path: Path) -> str:
@@ -81,14 +82,12 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
 
     from stages.keypoints.network import KeypointNet, NetConfig
 
-    packaged = {None: PACKAGED_WEIGHTS, "": PACKAGED_WEIGHTS, "packaged": PACKAGED_WEIGHTS,
-                "packaged_procedural": PACKAGED_PROCEDURAL}
-    path = packaged[weights] if weights in packaged else Path(weights)
+    path = _PACKAGED_NETWORKS.get(weights or "packaged") or Path(weights)
     key = str(path)
     if key in _MODELS:
         return _MODELS[key]
     if not path.is_file():
-        if path not in (PACKAGED_WEIGHTS, PACKAGED_PROCEDURAL):
+        if path not in _PACKAGED_NETWORKS.values():
             raise InputError(f"keypoints.weights: no such file {path}")
         torch.manual_seed(0)  # the default architecture, random weights: results are meaningless
         model, name = KeypointNet(NetConfig()), "untrained"
@@ -97,11 +96,12 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
         # keypoints.pt (exported) keeps "state_dict"; a training checkpoint (last.pt) keeps "model".
         sd = ckpt.get("state_dict", ckpt.get("model")) if isinstance(ckpt, dict) else None
         try:
-            model = KeypointNet(NetConfig.from_dict(ckpt["network"]))
+            net_cfg = NetConfig.from_dict(ckpt["network"]) if sd is not None else None
         except (KeyError, TypeError):
-            sd = None
-        if sd is None:
+            net_cfg = None
+        if net_cfg is None:
             raise InputError(f"keypoints.weights: {path} is not a polyvec-train checkpoint")
+        model = KeypointNet(net_cfg)
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         name = f"{path.name}@{_file_hash(path)}"
     model.eval()
