@@ -77,9 +77,31 @@ def test_pinhole_is_repaired_and_real_hole_kept():
     grey[10:30, 10:30] = 0.0
     grey[20, 20] = 1.0  # pinhole inside a blob
     grey[14:18, 22:27] = 1.0  # real hole (20 pixels)
-    mask = prep.narrow_band(grey, CFG["threshold"], 3, 6, 1)
+    mask = prep.narrow_band(grey, CFG["threshold"], 3, 6, 1, CFG["repair_max_grey"])
     assert mask[20, 20]
     assert not mask[15, 24]
+
+
+def _teardrop_loop() -> np.ndarray:
+    """A thin closed loop (an eye drawn as a teardrop) with a one-pixel-wide paper slit inside."""
+    grey = np.ones((24, 40), np.float32)
+    grey[8:14, 6:34] = 0.0
+    grey[11, 9:31] = 1.0  # the slit: white paper, ink above and below
+    return grey
+
+
+def test_paper_slit_inside_a_narrow_loop_is_kept():
+    grey = _teardrop_loop()
+    mask = prep.narrow_band(grey, CFG["threshold"], 3, 6, 1, CFG["repair_max_grey"])
+    assert not mask[11, 9:31].any()
+    # the plain neighbour rule (repair_max_grey = 1) fills the slit: the loop becomes a blob
+    assert prep.narrow_band(grey, CFG["threshold"], 3, 6, 1, 1.0)[11, 9:31].all()
+
+
+def test_grey_pencil_pinholes_in_a_slit_are_still_repaired():
+    grey = _teardrop_loop()
+    grey[11, 9:31] = 0.75  # light pencil texture, lighter than the ink threshold but not paper
+    assert prep.narrow_band(grey, CFG["threshold"], 3, 6, 1, CFG["repair_max_grey"])[11, 9:31].all()
 
 
 @pytest.mark.parametrize("data, message", [
