@@ -149,6 +149,7 @@ def test_bench_cli(tmp_path, cli):
     assert res.returncode in (0, 1), res.stderr  # 1: some case failed (scored as a failure)
     assert "Traceback" not in res.stderr
     assert "polyvec-bench" in res.stderr and "fidelity, topology, cost" in res.stderr
+    assert not list(tmp_path.glob("*.log")), "the run left a Hydra log file in the working directory"
     out = tmp_path / "report"
     rows = json.loads((out / "cases.json").read_text())
     assert {r["name"]: r["has_gt"] for r in rows} == {"tee": True, "plain/line": False}

@@ -16,6 +16,7 @@ def test_default_run_on_the_bundled_example(tmp_path, cli):
     assert (tmp_path / "out" / "polyvec-example.png").exists()
     assert (tmp_path / "artifacts" / "prep").is_dir()
     assert "computed" in proc.stderr
+    assert not list(tmp_path.glob("*.log")), "the run left a Hydra log file in the working directory"
     if (tmp_path / "artifacts" / "export").is_dir():
         assert (tmp_path / "out" / "polyvec-example.svg").exists()
     again = cli(cwd=tmp_path)
