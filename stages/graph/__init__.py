@@ -60,7 +60,7 @@ from stages.graph.cross_section import RawGraph, build_cross_sections, streamlin
 from stages.graph.render import render_graph
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
-STAGE_VERSION = "2"
+STAGE_VERSION = "3"  # 3: narrow loop caps closed (cleanup.close_loop_caps)
 
 __all__ = ["STAGE_VERSION", "GraphConfig", "run", "build_graph", "render_graph"]
 
@@ -115,6 +115,8 @@ class CleanupConfig:
     cover_margin: float
     join_singular_distance: float
     join_singular_min_hops: int
+    close_caps_widths: float
+    close_caps_min_hops: int
 
 
 @dataclass(frozen=True)
@@ -248,6 +250,10 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
         added = np.zeros((0, 2), np.int64)
     stats["singular_joins"] = int(len(added))
     edges = np.concatenate([edges, added]).astype(np.int64)
+    # 6a. the caps of narrow loops
+    caps = cleanup.close_loop_caps(xy, width, edges, band, cc.close_caps_widths, cc.close_caps_min_hops)
+    stats["loop_caps_closed"] = int(len(caps))
+    edges = np.concatenate([edges, caps]).astype(np.int64)
     # 6b. ends inside other components' strokes (after the joins: a Y's pieces are one component by now)
     edges, n_cov = cleanup.trim_covered_ends(xy, width, edges, cc.spur_max_length, cc.spur_min_covered,
                                              cc.cover_margin)

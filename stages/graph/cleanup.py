@@ -55,6 +55,15 @@ Steps, in the order :func:`stages.graph.run` applies them:
 7. :func:`join_singular_ends` — B19's ``connectStuffAroundSingularities`` (not in the authors' code):
    traces stop at the singularity of a Y junction; joining the dangling end there to the other
    branches gives the Y its valence-3 vertex (edges with ``edge_curve`` −1).
+7b. :func:`close_loop_caps` (not in the references) — where a stroke turns back tightly (an eye drawn
+   as a thin teardrop), the streamlines do not follow the cap, and the loop's two sides end as leaves
+   side by side; two leaves of one component, within ``close_caps_widths`` widths (at least 2 px) of
+   each other across ink and more than ``close_caps_min_hops`` edges apart, are joined, so the loop
+   is closed.  On realvec_dev (detector keypoints) it changed 8 of 106 drawings: endpoint F1 mean
+   0.8597 → 0.8608 (false endpoints 174 → 171), junction F1 mean 0.7117 → 0.7114 (false junctions
+   296 → 299), medians and Hausdorff unchanged; kept because the eyes come out as closed curves.
+   It runs on the narrow band, so it needs prep's paper-aware hole repair: with the plain repair
+   the slit of such loops was filled and there was no loop to close.
 8. :func:`smooth_widths` — the reference's width QP (Laplacian equations + data equations, weight 1)
    solved as one sparse linear solve ``(λ² LᵀL + I) w = w_raw`` and clipped to the raw range (instead
    of Gurobi with ±max bounds).  ``(I + λ² L²)⁻¹`` is not entry-wise positive, so the solution could in
@@ -518,6 +527,50 @@ def join_singular_ends(xy, width, edges, flags, band, singular, max_distance, mi
             adj[q].add(v)
             break
     return np.array(sorted(set(added)), dtype=np.int64).reshape(-1, 2)
+
+
+def close_loop_caps(xy, width, edges, band, max_widths, min_hops):
+    """Join two free ends of one chain that lie side by side in the ink (a narrow loop's cap).
+
+    Where a stroke turns back on itself tightly — the round end of an eye drawn as a thin teardrop,
+    the tip of a hairpin — the field's streamlines do not follow the turn, so the two sides are traced
+    as chains that end next to each other with nothing across the cap.  Two leaves closer than
+    ``max_widths`` times the larger of their widths (at least 2 px: the last cross-sections of a
+    thin cap are narrower than the stroke), whose straight segment stays in the band and
+    which are more than ``min_hops`` edges apart in the graph (connected far away: the loop's other
+    end), are joined.  Each leaf is joined at most once, to its nearest such partner.
+
+    Returns
+    -------
+    new_edges : numpy.ndarray
+        (K, 2) the added edges (``edge_curve`` −1 in the artifact).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xy)
+    adj = _adjacency(n, edges)
+    leaves = np.array([v for v in range(n) if len(adj[v]) == 1], np.int64)
+    if len(leaves) < 2 or max_widths <= 0:
+        return np.zeros((0, 2), np.int64)
+    reach = float(max_widths * max(width[leaves].max(), 2.0))
+    tree = cKDTree(xy[leaves])
+    pairs = []
+    for a, b in tree.query_pairs(reach):
+        u, v = int(leaves[a]), int(leaves[b])
+        d = float(np.hypot(*(xy[u] - xy[v])))
+        if d <= max_widths * max(width[u], width[v], 2.0):
+            pairs.append((d, u, v))
+    added, used = [], set()
+    for d, u, v in sorted(pairs):
+        if u in used or v in used or not _segment_in_band(xy[u], xy[v], band):
+            continue
+        # same chain, far round: a loop to close (two separate strokes touching end to end are left
+        # to the topology stage, see trim_covered_ends for why joining those was dropped)
+        if _hops_within(adj, u, v, min_hops) or not _hops_within(adj, u, v, n):
+            continue
+        added.append((min(u, v), max(u, v)))
+        used.update((u, v))
+    return np.array(sorted(added), dtype=np.int64).reshape(-1, 2)
 
 
 def _segment_in_band(a, b, band):

@@ -242,6 +242,25 @@ def test_pinhole_loop_stays_when_contraction_is_disabled():
     assert len(nx.cycle_basis(_nx(a))) >= 1
 
 
+def _teardrop_loop() -> np.ndarray:
+    """A thin closed loop with a tight round end (an eye drawn as a teardrop), 14 × 6 px, width 1.8."""
+    t = np.linspace(0.0, 2 * np.pi, 200)
+    x = 7.0 * np.cos(t)
+    y = 3.0 * np.sin(t) * (1 - 0.4 * (np.cos(t) + 1))  # round at x = -7, pointed at x = +7
+    return synthetic.render((48, 48), [np.c_[x + 24.0, y + 24.0]], 1.8)
+
+
+def test_narrow_loop_cap_is_closed():
+    """The streamlines do not follow the tight cap: its two sides end as leaves unless joined."""
+    p, f = _inputs_from_grey(_teardrop_loop())
+    open_ = _nx(_graph(p, f, close_caps_widths=0.0))
+    assert len(nx.cycle_basis(open_)) == 0 and sum(d == 1 for _, d in open_.degree) >= 2
+    a = _graph(p, f)
+    closed = _nx(a)
+    assert a.data["counts"]["loop_caps_closed"] >= 1
+    assert nx.is_connected(closed) and len(nx.cycle_basis(closed)) == 1
+
+
 def test_small_ring_keeps_its_real_hole():
     a = _graph(*_inputs("circle", radius=5.0))
     g = _nx(a)
