@@ -212,6 +212,7 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
         topo_o, topo_g = extract_topology(curves, w, tp), extract_topology(strokes, w, tp)
         row.update(compare_topology(topo_o, topo_g, w, tp))
         row.update(error_breakdown(topo_o, topo_g, case, w, tp))
+        row.update(junction_causes(topo_o, topo_g, np.asarray(arts["keypoints"]["points"]).reshape(-1, 2), w, tp))
     except Exception as e:                                          # one case must not sink the run
         row["error"] = f"{type(e).__name__}: {e}"
         row["traceback"] = traceback.format_exc()
@@ -250,6 +251,38 @@ def error_breakdown(topo_o, topo_g, case: dict, width: float, tp) -> dict:
         for j in np.setdiff1d(np.arange(len(b)), m[:, 1]):
             lab = "".join(t for t, pts in out_pts.items() if near(b[j], pts)) or "-"
             counts[f"err_{kind}_fn_{lab}"] = counts.get(f"err_{kind}_fn_{lab}", 0) + 1
+    return counts
+
+
+def junction_causes(topo_o, topo_g, keypoints: np.ndarray, width: float, tp) -> dict:
+    """Counts that separate the causes of junction errors (``cause_*``; see the issue 6 notes).
+
+    * ``cause_junction_fn_undetected`` — a missed GT junction with no input keypoint (of any type)
+      within the matching radius: the detector did not fire there;
+    * ``cause_junction_fn_pair`` — a missed GT junction with an output junction within the radius
+      that is matched to *another* GT junction: two GT junctions closer than the radius (a
+      tangential merge next to a crossing, three strokes meeting) where the output, like the ink,
+      has one;
+    * ``cause_junction_fp_stops_short`` — a false output junction within the radius of a GT free
+      end: the GT stroke stops just short of the other stroke (beyond the labelling radius
+      max(2, w)) while the ink touches.
+    """
+    from stages.evaluate.matching import match_one_to_one
+
+    radius = max(tp.match_min_px, width)
+
+    def near(p, pts):
+        return len(pts) > 0 and float(np.min(np.hypot(*(np.asarray(pts) - p).T))) <= radius
+
+    m = match_one_to_one(topo_o.junctions, topo_g.junctions, radius)
+    matched_o = topo_o.junctions[m[:, 0]] if len(m) else np.zeros((0, 2))
+    counts = {"cause_junction_fn_undetected": 0, "cause_junction_fn_pair": 0, "cause_junction_fp_stops_short": 0}
+    for j in np.setdiff1d(np.arange(len(topo_g.junctions)), m[:, 1]):
+        g = topo_g.junctions[j]
+        counts["cause_junction_fn_undetected"] += int(not near(g, keypoints))
+        counts["cause_junction_fn_pair"] += int(near(g, matched_o))
+    for i in np.setdiff1d(np.arange(len(topo_o.junctions)), m[:, 0]):
+        counts["cause_junction_fp_stops_short"] += int(near(topo_o.junctions[i], topo_g.free_ends))
     return counts
 
 
@@ -303,6 +336,11 @@ def print_report(rows: list[dict], worst: int) -> None:
         items = sorted(((v, k[len(f"err_{kind}_"):]) for k, v in tot.items() if k.startswith(f"err_{kind}_")),
                        reverse=True)
         print(f"  {kind:<12} " + ", ".join(f"{lab} {v}" for v, lab in items))
+    causes = {k: sum(r.get(k, 0) for r in rows) for k in
+              ("cause_junction_fn_undetected", "cause_junction_fn_pair", "cause_junction_fp_stops_short")}
+    print("junction errors by cause (junction_causes): missed with no input keypoint near "
+          f"{causes['cause_junction_fn_undetected']}, missed beside a GT junction the output matched "
+          f"{causes['cause_junction_fn_pair']}; false at a GT free end {causes['cause_junction_fp_stops_short']}")
     ok = [r for r in rows if not r["error"]]
     for col, rev in (("f1_2", False), ("hausdorff_px", True), ("endpoint_f1", False), ("junction_f1", False),
                      ("dangling", True)):
