@@ -548,25 +548,24 @@ def close_loop_caps(xy, width, edges, band, max_widths, min_hops):
     from scipy.spatial import cKDTree
 
     n = len(xy)
-    adj = _adjacency(n, edges)
-    leaves = np.array([v for v in range(n) if len(adj[v]) == 1], np.int64)
+    leaves = np.flatnonzero(np.bincount(edges.ravel(), minlength=n) == 1)
     if len(leaves) < 2 or max_widths <= 0:
         return np.zeros((0, 2), np.int64)
-    reach = float(max_widths * max(width[leaves].max(), 2.0))
-    tree = cKDTree(xy[leaves])
+    _, comp = _components(n, edges)
     pairs = []
-    for a, b in tree.query_pairs(reach):
+    for a, b in cKDTree(xy[leaves]).query_pairs(float(max_widths * max(width[leaves].max(), 2.0))):
         u, v = int(leaves[a]), int(leaves[b])
         d = float(np.hypot(*(xy[u] - xy[v])))
-        if d <= max_widths * max(width[u], width[v], 2.0):
+        # same chain only: two separate strokes touching end to end are left to the topology stage
+        # (see trim_covered_ends for why joining those was dropped)
+        if comp[u] == comp[v] and d <= max_widths * max(width[u], width[v], 2.0):
             pairs.append((d, u, v))
+    if not pairs:
+        return np.zeros((0, 2), np.int64)
+    adj = _adjacency(n, edges)
     added, used = [], set()
-    for d, u, v in sorted(pairs):
-        if u in used or v in used or not _segment_in_band(xy[u], xy[v], band):
-            continue
-        # same chain, far round: a loop to close (two separate strokes touching end to end are left
-        # to the topology stage, see trim_covered_ends for why joining those was dropped)
-        if _hops_within(adj, u, v, min_hops) or not _hops_within(adj, u, v, n):
+    for _, u, v in sorted(pairs):
+        if u in used or v in used or not _segment_in_band(xy[u], xy[v], band) or _hops_within(adj, u, v, min_hops):
             continue
         added.append((min(u, v), max(u, v)))
         used.update((u, v))

@@ -211,8 +211,7 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
         w = float(case["width"])
         topo_o, topo_g = extract_topology(curves, w, tp), extract_topology(strokes, w, tp)
         row.update(compare_topology(topo_o, topo_g, w, tp))
-        row.update(error_breakdown(topo_o, topo_g, case, w, tp))
-        row.update(junction_causes(topo_o, topo_g, np.asarray(arts["keypoints"]["points"]).reshape(-1, 2), w, tp))
+        row.update(error_breakdown(topo_o, topo_g, case, w, tp, np.asarray(arts["keypoints"]["points"]).reshape(-1, 2)))
     except Exception as e:                                          # one case must not sink the run
         row["error"] = f"{type(e).__name__}: {e}"
         row["traceback"] = traceback.format_exc()
@@ -222,43 +221,18 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
 ERROR_CLASSES = ("junction_fp", "endpoint_fp", "junction_fn", "endpoint_fn")
 
 
-def error_breakdown(topo_o, topo_g, case: dict, width: float, tp) -> dict:
+def error_breakdown(topo_o, topo_g, case: dict, width: float, tp, keypoints: np.ndarray) -> dict:
     """Unmatched junctions / free ends, each labelled by what lies within the matching radius.
 
     False positives (output points without a GT partner) get the GT keypoint types there
     (``E``/``J``/``C``, or ``-`` for none): a junction FP at ``C`` is a corner where three or more
     curve ends met, at ``E`` a stroke end that touches another curve.  False negatives (GT points
     without an output partner) get what the output has there: ``oJ`` junction, ``oC`` continuation,
-    ``oF`` free end, ``-`` nothing.  Returned as ``err_<kind>_<label>`` counts.
-    """
-    from stages.evaluate.matching import match_one_to_one
+    ``oF`` free end, ``-`` nothing.  Returned as ``err_<kind>_<label>`` counts, with three counts
+    that separate the causes of junction errors (see the issue 6 notes):
 
-    radius = max(tp.match_min_px, width)
-    kps = {t: np.asarray(case.get(k, []), np.float64).reshape(-1, 2)
-           for k, t in (("endpoints", "E"), ("junctions", "J"), ("corners", "C"))}
-    out_pts = {"oJ": topo_o.junctions, "oC": topo_o.continuations, "oF": topo_o.free_ends}
-
-    def near(p, pts):
-        return len(pts) > 0 and float(np.min(np.hypot(*(np.asarray(pts) - p).T))) <= radius
-
-    counts: dict[str, int] = {}
-    for kind, a, b in (("junction", topo_o.junctions, topo_g.junctions), ("endpoint", topo_o.free_ends,
-                                                                          topo_g.free_ends)):
-        m = match_one_to_one(a, b, radius)
-        for i in np.setdiff1d(np.arange(len(a)), m[:, 0]):
-            lab = "".join(t for t, pts in kps.items() if near(a[i], pts)) or "-"
-            counts[f"err_{kind}_fp_{lab}"] = counts.get(f"err_{kind}_fp_{lab}", 0) + 1
-        for j in np.setdiff1d(np.arange(len(b)), m[:, 1]):
-            lab = "".join(t for t, pts in out_pts.items() if near(b[j], pts)) or "-"
-            counts[f"err_{kind}_fn_{lab}"] = counts.get(f"err_{kind}_fn_{lab}", 0) + 1
-    return counts
-
-
-def junction_causes(topo_o, topo_g, keypoints: np.ndarray, width: float, tp) -> dict:
-    """Counts that separate the causes of junction errors (``cause_*``; see the issue 6 notes).
-
-    * ``cause_junction_fn_undetected`` — a missed GT junction with no input keypoint (of any type)
-      within the matching radius: the detector did not fire there;
+    * ``cause_junction_fn_undetected`` — a missed GT junction with no input keypoint (``keypoints``,
+      of any type) within the radius: the detector did not fire there;
     * ``cause_junction_fn_pair`` — a missed GT junction with an output junction within the radius
       that is matched to *another* GT junction: two GT junctions closer than the radius (a
       tangential merge next to a crossing, three strokes meeting) where the output, like the ink,
@@ -270,19 +244,29 @@ def junction_causes(topo_o, topo_g, keypoints: np.ndarray, width: float, tp) -> 
     from stages.evaluate.matching import match_one_to_one
 
     radius = max(tp.match_min_px, width)
+    kps = {t: np.asarray(case.get(k, []), np.float64).reshape(-1, 2)
+           for k, t in (("endpoints", "E"), ("junctions", "J"), ("corners", "C"))}
+    out_pts = {"oJ": topo_o.junctions, "oC": topo_o.continuations, "oF": topo_o.free_ends}
 
     def near(p, pts):
         return len(pts) > 0 and float(np.min(np.hypot(*(np.asarray(pts) - p).T))) <= radius
 
-    m = match_one_to_one(topo_o.junctions, topo_g.junctions, radius)
-    matched_o = topo_o.junctions[m[:, 0]] if len(m) else np.zeros((0, 2))
-    counts = {"cause_junction_fn_undetected": 0, "cause_junction_fn_pair": 0, "cause_junction_fp_stops_short": 0}
-    for j in np.setdiff1d(np.arange(len(topo_g.junctions)), m[:, 1]):
-        g = topo_g.junctions[j]
-        counts["cause_junction_fn_undetected"] += int(not near(g, keypoints))
-        counts["cause_junction_fn_pair"] += int(near(g, matched_o))
-    for i in np.setdiff1d(np.arange(len(topo_o.junctions)), m[:, 0]):
-        counts["cause_junction_fp_stops_short"] += int(near(topo_o.junctions[i], topo_g.free_ends))
+    counts: dict[str, int] = {"cause_junction_fn_undetected": 0, "cause_junction_fn_pair": 0,
+                              "cause_junction_fp_stops_short": 0}
+    for kind, a, b in (("junction", topo_o.junctions, topo_g.junctions), ("endpoint", topo_o.free_ends,
+                                                                          topo_g.free_ends)):
+        m = match_one_to_one(a, b, radius)
+        for i in np.setdiff1d(np.arange(len(a)), m[:, 0]):
+            lab = "".join(t for t, pts in kps.items() if near(a[i], pts)) or "-"
+            counts[f"err_{kind}_fp_{lab}"] = counts.get(f"err_{kind}_fp_{lab}", 0) + 1
+            if kind == "junction":
+                counts["cause_junction_fp_stops_short"] += int(near(a[i], topo_g.free_ends))
+        for j in np.setdiff1d(np.arange(len(b)), m[:, 1]):
+            lab = "".join(t for t, pts in out_pts.items() if near(b[j], pts)) or "-"
+            counts[f"err_{kind}_fn_{lab}"] = counts.get(f"err_{kind}_fn_{lab}", 0) + 1
+            if kind == "junction":
+                counts["cause_junction_fn_undetected"] += int(not near(b[j], keypoints))
+                counts["cause_junction_fn_pair"] += int(near(b[j], a[m[:, 0]]))
     return counts
 
 
@@ -338,7 +322,7 @@ def print_report(rows: list[dict], worst: int) -> None:
         print(f"  {kind:<12} " + ", ".join(f"{lab} {v}" for v, lab in items))
     causes = {k: sum(r.get(k, 0) for r in rows) for k in
               ("cause_junction_fn_undetected", "cause_junction_fn_pair", "cause_junction_fp_stops_short")}
-    print("junction errors by cause (junction_causes): missed with no input keypoint near "
+    print("junction errors by cause (error_breakdown): missed with no input keypoint near "
           f"{causes['cause_junction_fn_undetected']}, missed beside a GT junction the output matched "
           f"{causes['cause_junction_fn_pair']}; false at a GT free end {causes['cause_junction_fp_stops_short']}")
     ok = [r for r in rows if not r["error"]]
