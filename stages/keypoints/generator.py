@@ -51,6 +51,7 @@ class GeneratorConfig:
     paper_noise_max: float = 0.06    # std of paper noise (1 = black-to-white)
     ink_min: float = 0.35            # lightest ink darkness (pencil)
     gap_max: float = 0.6             # T-ends stop short / overshoot by up to this × width
+    thin_prob: float = 0.0           # share of drawings in thin grey aliased ink (1–2 px, hard edges)
 
     @classmethod
     def from_dict(cls, d: dict) -> "GeneratorConfig":
@@ -387,6 +388,8 @@ def drawing_from_strokes(rng: np.random.Generator, strokes: list[np.ndarray], sh
     -------
     Sample
     """
+    if cfg.thin_prob > 0 and rng.random() < cfg.thin_prob:
+        return _thin_aliased(rng, strokes, shape, cfg, rules)
     if widths is None:
         widths = _widths(rng, cfg, strokes)
     pencil = rng.random() < cfg.pencil_prob
@@ -400,6 +403,36 @@ def drawing_from_strokes(rng: np.random.Generator, strokes: list[np.ndarray], sh
     h, w = shape
     inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h) if len(pts) else np.zeros(0, bool)
     return Sample(grey, strokes, widths, pts[inside], types[inside])
+
+
+def _thin_aliased(rng: np.random.Generator, strokes: list[np.ndarray], shape: tuple[int, int],
+                  cfg: GeneratorConfig, rules: LabelRules) -> Sample:
+    """Thin (1–2 px) grey ink with hard or poor anti-aliasing: the staircase of cheap drawing tools.
+
+    Its smooth curves must give no corner: the labels come from the centre lines as always, so the
+    network learns that the aliasing steps are not keypoints.
+    """
+    wd = rng.uniform(1.0, 2.2)
+    widths = [np.full(len(s), wd) for s in strokes]
+    cover = render_strokes(shape, strokes, widths)
+    mode = rng.integers(3)
+    if mode == 0:    # no anti-aliasing: a pixel is ink or paper
+        cover = (cover >= rng.uniform(0.35, 0.6)).astype(np.float64)
+    elif mode == 1:  # coarse anti-aliasing: coverage quantised to a few levels
+        levels = int(rng.integers(2, 5))
+        cover = np.round(cover * levels) / levels
+    dark = rng.uniform(0.3, 0.9)  # grey strokes: low contrast
+    ink = cover * dark
+    blur = rng.uniform(0.0, 0.6)
+    if blur > 0.2:
+        ink = ndimage.gaussian_filter(ink, blur)
+    grey = rng.uniform(0.92, 1.0) * (1.0 - ink)
+    if rng.random() < 0.3:
+        grey = grey + rng.normal(0.0, rng.uniform(0.0, 0.02), shape)
+    pts, types = label_keypoints(strokes, [wd] * len(strokes), rules)
+    h, w = shape
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h) if len(pts) else np.zeros(0, bool)
+    return Sample(np.clip(grey, 0.0, 1.0).astype(np.float32), strokes, widths, pts[inside], types[inside])
 
 
 def generate(rng: np.random.Generator, cfg: GeneratorConfig, rules: LabelRules) -> Sample:
@@ -472,6 +505,39 @@ def read_quickdraw_ndjson(path: str | Path, limit: int | None = None) -> list[li
 
 _NUM = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _CMD = re.compile(r"([MmLlHhVvCcSsQqTtAaZz])([^MmLlHhVvCcSsQqTtAaZz]*)")
+
+
+def read_stroke3(path: str | Path, split: str) -> list[list[np.ndarray]]:
+    """Read stroke-3 drawings (sketch-rnn format: rows ``[dx, dy, pen_lifted]``) from an ``.npz``.
+
+    Parameters
+    ----------
+    path : str or Path
+        An ``.npz`` with one object array per split (Omniglot: ``train``, ``valid``, ``test``).
+    split : str
+        Which array to read.
+
+    Returns
+    -------
+    list of list of numpy.ndarray
+        Per drawing, its strokes as (n, 2) arrays of absolute (x, y); a stroke ends at a row whose
+        ``pen_lifted`` is 1.
+    """
+    with np.load(path, allow_pickle=True, encoding="latin1") as data:
+        if split not in data.files:
+            raise ValueError(f"{path}: no split {split!r} (has {', '.join(data.files)})")
+        arrays = data[split]
+    out = []
+    for a in arrays:
+        a = np.asarray(a, float)
+        if len(a) == 0:
+            continue
+        xy = np.cumsum(a[:, :2], axis=0)
+        ends = np.flatnonzero(a[:, 2] > 0) + 1
+        strokes = [s for s in np.split(xy, ends) if len(s)]
+        if strokes:
+            out.append(strokes)
+    return out
 
 
 def _parse_transform(text: str | None) -> np.ndarray:

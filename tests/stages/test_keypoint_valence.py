@@ -130,8 +130,8 @@ def test_type_classifier_training_smoke(tmp_path):
     _write_ndjson(ndjson, 3)
     cfg = compose_plain(CONF, [f"train.out_dir={tmp_path}", "train.type_classifier.drawings=4",
                                "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20",
-                               f"train.vector.files=[{ndjson}]",
-                               "train.vector.skip=2", "train.vector.size=[96,128]"])
+                               f"train.vector.files=[{ndjson}]", "train.vector.holdout=0",
+                               "train.vector.stroke3=[]", "train.vector.skip=2", "train.vector.size=[96,128]"])
     rec = train_type_classifier(cfg)
     assert rec["keypoints"] > 0 and sum(rec["class_counts"]) == rec["keypoints"]
     assert rec["vector_files"] == ["doodles.ndjson"]
@@ -201,6 +201,7 @@ def test_detector_stream_mixes_human_strokes(tmp_path, monkeypatch):
 
     def crops(prob, n):
         cfg = tr.compose_plain(CONF, [f"train.vector.files=[{ndjson}]", "train.vector.skip=1",
+                                      "train.vector.holdout=0", "train.vector.stroke3=[]",
                                       "train.vector.size=[96,128]", f"train.vector_prob={prob}",
                                       "train.vector_crops_per_image=3", "train.crops_per_image=2"])
         calls.update(vector=0, generated=0)

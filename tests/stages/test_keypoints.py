@@ -277,7 +277,7 @@ def test_training_smoke_loss_decreases(tmp_path):
 
     cfg = compose_plain(CONF, [
         f"train.out_dir={tmp_path}", "train.steps=12", "train.batch_size=4", "train.num_workers=0",
-        "train.crop_schedule=[[0,48]]", "train.val.count=1", "train.val.every=1000",
+        "train.crop_schedule=[[0,48]]", "train.val.count=1", "train.val.vector_count=0", "train.val.every=1000",
         "train.checkpoint_every=6", "train.log_every=1000", "train.lr=0.003", "train.crops_per_image=4",
         "train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
         "train.network.bottleneck_blocks=1"])
@@ -315,7 +315,7 @@ def test_class_branch_training_keeps_detection(tmp_path):
     from pipeline.train import compose_plain, train, train_class_branch
 
     small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
-             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.num_workers=0"]
+             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]
     base = compose_plain(CONF, small + [
         f"train.out_dir={tmp_path / 'base'}", "train.steps=2", "train.batch_size=2",
         "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000",

@@ -1,0 +1,166 @@
+"""Human-stroke training data of the keypoint detector: readers, the category split, the thin aliased
+style, the validation cases, resuming, and a tiny training run on human strokes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.train import category_split, compose_plain, train, vector_pool
+from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, read_stroke3
+from stages.keypoints.labels import LabelRules
+
+ROOT = Path(__file__).resolve().parents[2]
+CONF = ROOT / "conf"
+SHARED = ROOT / ".." / "shared"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _write_categories(folder: Path, names: list[str], per: int = 3) -> None:
+    """One ndjson per category; drawing i of every category is a T (bar 100 + 40 i, stem 120)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        with open(folder / f"{name}.ndjson", "w") as f:
+            for i in range(per):
+                bar = [[0, 100 + 40 * i], [0, 0], [0, 1]]
+                stem = [[50 + 20 * i, 50 + 20 * i], [0, 120], [2, 3]]
+                f.write(json.dumps({"word": name, "drawing": [bar, stem]}) + "\n")
+
+
+def _write_stroke3(path: Path) -> None:
+    """Two symbols per split: an L (two strokes) and a one-stroke staircase diagonal."""
+    ell = np.array([[0, 0, 0], [0, 60, 1], [0, 0, 0], [60, 0, 1]], np.int16)
+    stairs = np.array([[0, 0, 0]] + [[6, 0, 0], [0, 6, 0]] * 10 + [[6, 0, 1]], np.int16)
+    arr = np.empty(2, dtype=object)
+    arr[0], arr[1] = ell, stairs
+    np.savez(path, train=arr, valid=arr[:1], test=arr[:1])
+
+
+def test_stroke3_reader_gives_absolute_strokes(tmp_path):
+    _write_stroke3(tmp_path / "s3.npz")
+    ell, stairs = read_stroke3(tmp_path / "s3.npz", "train")
+    assert len(ell) == 2  # the pen lifts once between the two strokes
+    np.testing.assert_allclose(ell[0], [[0, 0], [0, 60]])
+    np.testing.assert_allclose(ell[1], [[0, 60], [60, 60]])  # the second starts where the pen was lifted
+    assert len(stairs) == 1 and len(stairs[0]) == 22
+    assert len(read_stroke3(tmp_path / "s3.npz", "valid")) == 1
+    with pytest.raises(ValueError, match="no split 'dev'"):
+        read_stroke3(tmp_path / "s3.npz", "dev")
+
+
+def test_category_split_is_disjoint_deterministic_and_order_free():
+    files = [f"/data/qd/cat_{i:03d}.ndjson" for i in range(296)]
+    tr, va = category_split(files, 30, 0)
+    assert len(va) == 30 and len(tr) == 266 and not set(tr) & set(va) and set(tr) | set(va) == set(files)
+    assert category_split(list(reversed(files)), 30, 0) == (tr, va)          # order does not matter
+    assert category_split([f.replace("/data/", "/elsewhere/") for f in files], 30, 0)[1] == \
+        [f.replace("/data/", "/elsewhere/") for f in va]                        # only the names do
+    assert category_split(files, 30, 1)[1] != va                                # the seed does
+    assert category_split(files, 0, 0) == (sorted(files), [])
+
+
+def test_vector_pool_holds_whole_categories_out(tmp_path):
+    names = [f"thing{i}" for i in range(6)]
+    _write_categories(tmp_path / "qd", names, per=3)
+    _write_stroke3(tmp_path / "s3.npz")
+    vcfg = {"files": [str(tmp_path / "qd" / "*.ndjson")], "holdout": 2, "split_seed": 0, "skip": 1,
+            "stroke3": [str(tmp_path / "s3.npz")], "stroke3_simplify": 6.5}
+    train_pool, valid_pool = vector_pool(vcfg, "train"), vector_pool(vcfg, "valid")
+    assert len(train_pool["ndjson"]) == 4 * 2 and len(valid_pool["ndjson"]) == 2 * 2  # skip 1 of 3 each
+    assert len(train_pool["stroke3"]) == 2 and len(valid_pool["stroke3"]) == 1
+    # Douglas-Peucker at one grid cell turns the staircase into one straight segment.
+    assert len(train_pool["stroke3"][1][0]) == 2
+    with pytest.raises(ValueError):
+        vector_pool(vcfg, "test")
+
+
+def test_thin_aliased_style_is_thin_and_labels_no_corner_on_a_circle():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 2 * np.pi, 400)
+    circle = [np.stack([100 + 70 * np.cos(t), 100 + 70 * np.sin(t)], 1)]
+    arc = [np.stack([100 + 70 * np.cos(t[:200]), 100 + 70 * np.sin(t[:200])], 1)]
+    cfg = GeneratorConfig(thin_prob=1.0)
+    for strokes in (circle, arc):
+        s = drawing_from_strokes(rng, strokes, (200, 200), cfg, LabelRules())
+        assert max(float(np.max(w)) for w in s.widths) <= 2.2
+        assert 5 not in s.types.tolist()
+    assert sorted(s.types.tolist()) == [1, 1]
+    # hard-edged or coarsely anti-aliased: few distinct grey levels along the ink
+    levels = [len(np.unique(np.round(drawing_from_strokes(np.random.default_rng(k), circle, (200, 200), cfg,
+                                                         LabelRules()).grey, 3))) for k in range(6)]
+    assert min(levels) < 40
+
+
+def _tiny(tmp_path: Path, extra: list[str]) -> dict:
+    return compose_plain(CONF, [
+        f"train.out_dir={tmp_path / 'run'}", "train.batch_size=4", "train.num_workers=0",
+        "train.crop_schedule=[[0,48]]", "train.val.count=1", "train.val.vector_count=0", "train.val.every=1000",
+        "train.log_every=1000", "train.lr=0.003", "train.network.level_channels=[4,8,8,8]",
+        "train.network.stem_mid=4", "train.network.bottleneck_blocks=1", "train.seed=1"] + extra)
+
+
+def test_tiny_training_on_human_strokes_lowers_its_loss(tmp_path):
+    _write_categories(tmp_path / "qd", [f"thing{i}" for i in range(4)], per=4)
+    cfg = _tiny(tmp_path, [f"train.vector.files=[{tmp_path / 'qd' / '*.ndjson'}]", "train.vector.holdout=1",
+                           "train.vector.stroke3=[]", "train.vector.size=[96,128]", "train.vector_prob=1.0",
+                           "train.vector_crops_per_image=4", "train.steps=14", "train.checkpoint_every=100"])
+    torch.manual_seed(0)
+    curve = train(cfg)["loss_curve"]
+    assert len(curve) == 14 and np.mean(curve[-4:]) < np.mean(curve[:4])
+
+
+def test_training_resumes_where_it_stopped(tmp_path):
+    cfg = _tiny(tmp_path, ["train.steps=6", "train.checkpoint_every=3"])
+    first = train(cfg)
+    ck = torch.load(tmp_path / "run" / "last.pt", map_location="cpu", weights_only=False)
+    assert ck["step"] == 6
+    # The same command with more steps continues from step 6: only the new steps run.
+    cfg["train"]["steps"] = 9
+    second = train(cfg)
+    assert first["steps"] == 6 and second["steps"] == 9 and len(second["loss_curve"]) == 3
+
+
+def test_validation_cases_from_held_out_categories(tmp_path):
+    from pipeline.eval_keypoints import evaluate_folder, load_ground_truth
+    from pipeline.validation_cases import write_cases
+
+    _write_categories(tmp_path / "qd", [f"thing{i}" for i in range(5)], per=3)
+    cfg = compose_plain(CONF, [f"train.vector.files=[{tmp_path / 'qd' / '*.ndjson'}]", "train.vector.holdout=2",
+                               "train.vector.stroke3=[]"])
+    names = write_cases(cfg, tmp_path / "cases", per_category=1, stroke3=0)
+    _, held = category_split([str(p) for p in (tmp_path / "qd").glob("*.ndjson")], 2, 0)
+    assert sorted(names) == sorted(f"val_qd_{Path(f).stem}_0_{style}" for f in held for style in ("clean", "pencil"))
+    d = json.loads((tmp_path / "cases" / f"{names[0]}.json").read_text())
+    assert d["size"] == 512 and d["width"] in (2.0, 3.0, 5.0) and len(d["strokes"]) == 2
+    assert len(d["endpoints"]) == 3 and len(d["junctions"]) == 1  # a T
+    pts, types = load_ground_truth(tmp_path / "cases" / f"{names[0]}.png")
+    assert sorted(types.tolist()) == [1, 1, 1, 3]
+    again = write_cases(cfg, tmp_path / "again", per_category=1, stroke3=0)
+    assert again == names and (tmp_path / "again" / f"{names[0]}.png").read_bytes() == \
+        (tmp_path / "cases" / f"{names[0]}.png").read_bytes()
+    res = evaluate_folder(tmp_path / "cases", {}, limit=1)
+    assert res["summary"]["cases"] == 1
+
+
+@pytest.mark.shared
+def test_shared_split_holds_out_thirty_categories():
+    qd = SHARED / "data" / "vector" / "quickdraw_train"
+    if not qd.is_dir():
+        pytest.skip("../shared absent")
+    files = sorted(str(p) for p in qd.glob("*.ndjson"))
+    tr, va = category_split(files, 30, 0)
+    assert len(files) == 296 and len(va) == 30
+    # none of realvec_dev's Quick, Draw! categories is among them
+    dev = {p.stem for p in (SHARED / "data" / "vector" / "quickdraw").glob("*.ndjson")}
+    assert not dev & {Path(f).stem for f in files}
