@@ -221,10 +221,40 @@ def score_keypoints(pred: tuple[np.ndarray, np.ndarray], gt: dict[int, np.ndarra
         row[f"kp_f1_{names[t]}"] = f
     m = match_keypoints(gt_pts, gt_types, pts, types, float(kcfg["one_to_one_radius_px"]))
     row.update(kp_f1_1to1=m.f1, kp_precision_1to1=m.precision, kp_recall_1to1=m.recall,
-               kp_class_acc=m.accuracy if m.tp else float("nan"))
+               kp_class_acc=m.accuracy if m.tp else float("nan"),
+               kp_tp=m.tp, kp_fp=m.fp, kp_fn=m.fn, kp_correct_type=m.correct_type)
     for t in names:
-        row[f"kp_f1_1to1_{names[t]}"] = m.class_f1(t)
+        # A class absent from both the ground truth and the output has no F1 (not 0).
+        row[f"kp_f1_1to1_{names[t]}"] = m.class_f1(t) if sum(m.per_class[t]) else float("nan")
+        row[f"kp_{names[t]}_tp"], row[f"kp_{names[t]}_fp"], row[f"kp_{names[t]}_fn"] = m.per_class[t]
     return row
+
+
+def pooled_keypoints(rows: list[dict]) -> list[dict]:
+    """Keypoint figures pooled over all points of each group (and of all cases): one-to-one detection
+    F1, class accuracy, and class F1 per type (endpoint, junction, corner) — as ``pipeline.eval_keypoints``
+    reports them. Per-drawing class F1 is noisy (a drawing has a handful of corners), so these are
+    the figures the keypoint targets are stated in.
+    """
+    from stages.evaluate.keypoints import TYPES, MatchResult
+
+    names = {1: "end", 3: "junc", 5: "corner"}
+    scored = [r for r in rows if "kp_tp" in r]
+    groups = [("all", scored)] + [(g, [r for r in scored if r.get("group") == g])
+                                  for g in sorted({r.get("group") for r in scored if r.get("group")})]
+    out = []
+    for g, rr in groups:
+        if not rr:
+            continue
+        m = MatchResult()
+        for r in rr:
+            m = m + MatchResult(r["kp_tp"], r["kp_fp"], r["kp_fn"], r["kp_correct_type"],
+                                {t: [r[f"kp_{names[t]}_{k}"] for k in ("tp", "fp", "fn")] for t in TYPES})
+        figures = {"kp_f1_1to1": m.f1, "kp_class_acc": m.accuracy,
+                   **{f"kp_f1_1to1_{names[t]}": m.class_f1(t) for t in TYPES}}
+        out.append({"group": g, "cases": len(rr), "failures": 0,
+                    **{k: {"median": v, "mean": v, "n": len(rr), "pooled": True} for k, v in figures.items()}})
+    return out
 
 
 # -- scoring one case ----------------------------------------------------------------------------
@@ -346,6 +376,8 @@ def summary_tables(rows: list[dict], bcfg: dict) -> dict[str, list[dict]]:
     out = {}
     if gt_rows:
         out["ground truth"] = summarise(gt_rows, list(rep["gt_columns"]), group_by="group")
+        if pooled := pooled_keypoints(gt_rows):
+            out["keypoints pooled over all points"] = pooled
     out["fidelity, topology, cost"] = summarise(rows, list(rep["fidelity_columns"]), group_by="group")
     from pipeline.registry import STAGES
 
@@ -355,6 +387,13 @@ def summary_tables(rows: list[dict], bcfg: dict) -> dict[str, list[dict]]:
     return out
 
 
+def _summary_cell(entry: dict, column: str) -> str:
+    """``median (mean)`` of a summary entry, or the one value of a pooled figure."""
+    if entry.get("pooled"):
+        return _fmt(entry["median"], column)
+    return f"{_fmt(entry['median'], column)} ({_fmt(entry['mean'], column)})"
+
+
 def print_tables(tables: dict[str, list[dict]], console) -> None:
     """rich tables: one row per group, each cell ``median (mean)``."""
     from rich.table import Table
@@ -362,14 +401,15 @@ def print_tables(tables: dict[str, list[dict]], console) -> None:
     for title, entries in tables.items():
         cols = [k for k in entries[0] if k not in ("group", "cases", "failures")]
         cols = [c for c in cols if any(e[c]["n"] for e in entries)]
-        t = Table(title=f"polyvec-bench — {title}: median (mean)", show_lines=False)
+        pooled = any(e[c].get("pooled") for e in entries for c in cols)
+        t = Table(title=f"polyvec-bench — {title}" + ("" if pooled else ": median (mean)"), show_lines=False)
         t.add_column("group", no_wrap=True)
         t.add_column("cases", justify="right")
         t.add_column("fail", justify="right")
         for c in cols:
             t.add_column(c, justify="right")
         for e in entries:
-            cells = [f"{_fmt(e[c]['median'], c)} ({_fmt(e[c]['mean'], c)})" for c in cols]
+            cells = [_summary_cell(e[c], c) for c in cols]
             t.add_row(e["group"], str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
         console.print(t)
 
@@ -452,11 +492,12 @@ def html_report(rows: list[dict], tables: dict, pictures: dict[str, str], bcfg: 
              "blue corner).</p>"]
     for title, entries in tables.items():
         cols = [k for k in entries[0] if k not in ("group", "cases", "failures") and any(e[k]["n"] for e in entries)]
-        parts.append(f"<h2>{esc(title)}: median (mean)</h2><table><tr><th>group</th><th>cases</th><th>fail</th>"
+        pooled = any(e[c].get("pooled") for e in entries for c in cols)
+        parts.append(f"<h2>{esc(title)}{'' if pooled else ': median (mean)'}</h2><table><tr><th>group</th><th>cases</th><th>fail</th>"
                      + "".join(f"<th>{esc(c)}</th>" for c in cols) + "</tr>")
         for e in entries:
             parts.append(f"<tr><td>{esc(e['group'])}</td><td>{e['cases']}</td><td>{e['failures']}</td>"
-                         + "".join(f"<td>{_fmt(e[c]['median'], c)} ({_fmt(e[c]['mean'], c)})</td>" for c in cols)
+                         + "".join(f"<td>{_summary_cell(e[c], c)}</td>" for c in cols)
                          + "</tr>")
         parts.append("</table>")
     sort_by = extra.get("sorted_by", rep["sort_by"])

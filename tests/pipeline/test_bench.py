@@ -96,6 +96,29 @@ def test_score_case_keypoints(tmp_path):
     assert row["kp_f1_corner"] == 0.5  # the authors' value for a class without GT points
     assert row["kp_f1"] == pytest.approx(2 * n / (2 * n + 1))
     assert pic["keypoints"] is not None
+    # one-to-one class F1: the junction is missed as a junction, and a corner appears that the GT has not
+    assert row["kp_f1_1to1_junc"] == 0.0 and row["kp_f1_1to1_corner"] == 0.0
+    assert (row["kp_junc_tp"], row["kp_junc_fn"], row["kp_corner_fp"]) == (0, 1, 1)
+
+
+def test_pooled_keypoint_table_pools_points_not_drawings():
+    from pipeline.bench import pooled_keypoints
+
+    def row(group, end, junc, corner, correct):
+        r = {"group": group, "kp_tp": end[0] + junc[0] + corner[0], "kp_fp": end[1] + junc[1] + corner[1],
+             "kp_fn": end[2] + junc[2] + corner[2], "kp_correct_type": correct}
+        for name, c in (("end", end), ("junc", junc), ("corner", corner)):
+            r[f"kp_{name}_tp"], r[f"kp_{name}_fp"], r[f"kp_{name}_fn"] = c
+        return r
+
+    rows = [row("clean", (9, 1, 0), (1, 0, 1), (0, 0, 0), 10),
+            row("pencil", (1, 0, 0), (0, 0, 9), (2, 2, 0), 3)]
+    table = {e["group"]: e for e in pooled_keypoints(rows)}
+    assert set(table) == {"all", "clean", "pencil"} and table["all"]["cases"] == 2
+    # junctions pooled: tp 1, fp 0, fn 10 -> 2/12; the mean of the per-drawing F1 would be (2/3 + 0)/2
+    assert table["all"]["kp_f1_1to1_junc"]["median"] == pytest.approx(2 / 12)
+    assert table["clean"]["kp_f1_1to1_corner"]["median"] == 0.0
+    assert table["all"]["kp_class_acc"]["median"] == pytest.approx(13 / 13)
 
 
 def test_score_case_broken_output(tmp_path):
@@ -158,6 +181,8 @@ def test_bench_cli(tmp_path, cli):
         assert len(list(csv.DictReader(f))) == 2
     summary = json.loads((out / "summary.json").read_text())
     assert summary["cases"] == 2 and "tables" in summary
+    assert "keypoints pooled over all points" in summary["tables"]
+    assert "keypoints pooled over all points" in res.stderr
     page = (out / "report.html").read_text()
     assert "tee" in page and "plain/line" in page and (out / "img" / "tee.png").is_file()
     assert (tmp_path / "artifacts" / "prep").is_dir()  # the polyvec store, shared with `polyvec`
