@@ -618,7 +618,9 @@ def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
     for _ in range(count):
         yield generate(rng, gcfg, rules)
     if vector:
-        yield from vector_samples(cfg["train"].get("vector") or {}, rng, gcfg, rules)
+        limit = cfg["train"]["type_classifier"].get("vector_drawings")
+        yield from vector_samples(cfg["train"].get("vector") or {}, rng, gcfg, rules,
+                                  limit=None if limit is None else int(limit))
 
 
 def _vector_files(vcfg: dict, key: str = "files") -> list[str]:
@@ -713,19 +715,26 @@ def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_rang
 
 
 def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules,
-                   part: str = "train"):
+                   part: str = "train", limit: int | None = None):
     """Human strokes, styled and labelled like the generated drawings.
 
     ``vcfg`` (``train.vector``): the pool (:func:`vector_pool`), ``renders`` (styled copies per
     drawing, each with its own width, style and canvas size) and the canvas ranges. The strokes keep
     their hand jitter, overdraw and near-touching ends — what the procedural generator lacks — and
-    their keypoints come from the same label rules.
+    their keypoints come from the same label rules. With ``limit``, that many drawings are drawn at
+    random instead (:func:`draw_vector`, the detector's mix): the whole pool is 37 k drawings.
 
     Yields
     ------
     stages.keypoints.generator.Sample
     """
     pool = vector_pool(vcfg, part)
+    if limit is not None:
+        for _ in range(limit):
+            if (s := draw_vector(rng, pool, vcfg, gcfg, rules)) is None:
+                return
+            yield s
+        return
     for key, size in (("ndjson", vcfg.get("size", [384, 512])), ("stroke3", vcfg.get("stroke3_size", [160, 320]))):
         for strokes in pool[key]:
             for _ in range(int(vcfg.get("renders", 1))):

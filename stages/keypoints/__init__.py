@@ -148,7 +148,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     """
     import torch
 
-    from stages.keypoints.inference import dilate_band, find_keypoints, network_input, predict_heatmaps
+    from stages.keypoints.inference import network_input, predict_heatmaps
 
     if cfg["typing"] not in ("valence", "argmax"):
         raise InputError(f"typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
@@ -170,22 +170,50 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
             h1 += predict_heatmaps(other, x, *tiles, detection_only=True)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
-    band = None
-    if cfg["restrict_to_band"] and "mask" in prep.arrays:
-        band = dilate_band(np.asarray(prep["mask"], bool), int(cfg["band_dilation"]))
-        heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
-    points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
-                                           band, bool(cfg["subpixel"]))
-    heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
-    if cfg["typing"] == "valence" and len(points) and "mask" in prep.arrays:
-        clf = load_type_classifier(cfg["type_classifier"])
-        feats = valence_features(np.asarray(prep["mask"], bool), points, class_scores_at(heatmaps, points))
-        types = np.asarray(TYPE_CODES, np.int8)[clf.predict(feats)]
+    heatmaps, points, types, scores = keypoints_from_heatmaps(
+        cfg, heatmaps, np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None)
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points)})
+
+
+def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Peaks of H1 on the band and their types: the stage after the network(s).
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``keypoints`` section (``restrict_to_band``, ``band_dilation``, ``threshold``,
+        ``min_distance``, ``subpixel``, ``typing``, ``type_classifier``).
+    heatmaps : numpy.ndarray
+        (4, H, W) network output (H1 possibly an ensemble mean).
+    mask : numpy.ndarray or None
+        bool (H, W) narrow band of the prep stage.
+
+    Returns
+    -------
+    heatmaps : numpy.ndarray
+        Zero off the dilated band (when ``restrict_to_band``), clipped to [0, 1].
+    points, types, scores : numpy.ndarray
+        As in :func:`run`.
+    """
+    from stages.keypoints.inference import dilate_band, find_keypoints
+
+    band = None
+    if cfg["restrict_to_band"] and mask is not None:
+        band = dilate_band(mask, int(cfg["band_dilation"]))
+        heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
+    points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
+                                           band, bool(cfg["subpixel"]))
+    heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
+    if cfg["typing"] == "valence" and len(points) and mask is not None:
+        clf = load_type_classifier(cfg["type_classifier"])
+        feats = valence_features(mask, points, class_scores_at(heatmaps, points))
+        types = np.asarray(TYPE_CODES, np.int8)[clf.predict(feats)]
+    return heatmaps, points, types, scores
 
 
 _COLOURS = {1: (40, 90, 255), 3: (255, 150, 0), 5: (0, 180, 60)}  # endpoint, junction, corner
