@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -9,14 +10,15 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from PIL import Image
 
 from stages import synthetic
 from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
-from stages.keypoints.generator import (GeneratorConfig, generate, read_quickdraw_ndjson, read_svg_strokes,
-                                        render_strokes)
+from stages.keypoints.generator import (GeneratorConfig, drawing_from_strokes, generate, read_quickdraw_ndjson,
+                                        read_svg_strokes, render_strokes)
 from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.labels import LabelRules, label_keypoints
 from stages.keypoints.network import KeypointNet, NetConfig
@@ -251,6 +253,32 @@ def test_shipped_model_finds_both_ends_of_a_stroke():
     gt = np.array([k[:2] for k in d.keypoints])
     m = match_keypoints(gt, np.array([1, 1]), a["points"], a["types"], 5.0)
     assert m.tp == 2 and m.correct_type == 2
+
+
+@pytest.mark.skipif(not PACKAGED_WEIGHTS.is_file(), reason="no shipped weights yet")
+def test_shipped_model_gives_no_corner_on_thin_aliased_smooth_curves():
+    """Thin (1–2.2 px) grey ink with hard or coarse anti-aliasing (generator.thin_prob): the aliasing
+    staircase of smooth ellipses and an arc must not read as corners, nor as any other keypoint."""
+    from stages import prep as prep_stage
+
+    t, u = np.linspace(0, 2 * np.pi, 700), np.linspace(0, 1, 300)
+    pcfg = yaml.safe_load((CONF / "prep" / "default.yaml").read_text())
+    spurious = []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        strokes = [np.stack([300 + rng.uniform(150, 230) * np.cos(t), 330 + rng.uniform(110, 170) * np.sin(t)], 1),
+                   np.stack([200 + rng.uniform(50, 80) * np.cos(t), 140 + rng.uniform(40, 70) * np.sin(t)], 1),
+                   np.stack([420 + 140 * u, 230 - rng.uniform(30, 90) * np.sin(np.pi * u)], 1)]
+        s = drawing_from_strokes(rng, strokes, (600, 600), GeneratorConfig(thin_prob=1.0), RULES)
+        png = Image.fromarray((s.grey * 255).round().astype(np.uint8))
+        buf = io.BytesIO()
+        png.save(buf, format="PNG")
+        a = run(_cfg(), prep=prep_stage.run(pcfg, image_bytes=buf.getvalue(), image_name="thin.png"))
+        assert 5 not in s.types.tolist()
+        for q, ty in zip(a["points"], a["types"]):
+            if np.min(np.hypot(*(s.points - q).T)) > 6:
+                spurious.append((seed, int(ty), q.round().tolist()))
+    assert not spurious
 
 
 # --- metrics -----------------------------------------------------------------------------------
