@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pipeline.registry import BY_NAME, StageSpec, active_stages, ancestors
+from pipeline.registry import BY_NAME, StageSpec, active_stages
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, library_versions
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -325,19 +325,18 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
 def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     """``sync`` or ``local`` (dask) for this batch's pending tasks.
 
-    ``runtime.cluster: auto`` runs in-process when nothing could run at the same time — the pending
-    tasks belong to one image and form a chain, as in a λ or time-step re-run (flow → select →
-    export) — because starting worker processes costs seconds and gains nothing there; otherwise, and
-    always with a ``scheduler_address``, it uses dask.
+    ``runtime.cluster: auto`` runs in-process when only one image has work left — a first run of one
+    drawing, or a λ / time-step re-run (flow → select → export) — because starting worker processes
+    costs more than running its keypoints beside its field gains (penguin 500×714 from an empty
+    store: 14.9 s on a local cluster, 10.9 s in-process); with two images or more, and always with a
+    ``scheduler_address``, it uses dask.
     """
     mode = runtime.get("cluster", "local")
     if mode != "auto":
         return mode
     if runtime.get("scheduler_address") or len(pending) > 1:
         return "local"
-    names = [t.stage for t in pending[0]] if pending else []
-    chain = all(a in ancestors(b) or b in ancestors(a) for i, a in enumerate(names) for b in names[i + 1:])
-    return "sync" if chain else "local"
+    return "sync"
 
 
 def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
