@@ -28,6 +28,18 @@ def run_cli(*args: str, cwd: Path, module: str = "pipeline.cli") -> subprocess.C
                           env=env, timeout=900)
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """torch on one thread for a module's tests: small tensors gain nothing from a second OpenMP
+    thread, and on a busy 2-core machine every op then waits for a descheduled thread (seen: 30x slower)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture
 def cli():
     """The :func:`run_cli` helper."""

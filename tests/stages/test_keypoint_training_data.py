@@ -19,12 +19,7 @@ CONF = ROOT / "conf"
 SHARED = ROOT / ".." / "shared"
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _write_categories(folder: Path, names: list[str], per: int = 3) -> None:

@@ -30,14 +30,7 @@ CONF = ROOT / "conf"
 RULES = LabelRules()
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    # Small tensors: a second OpenMP thread only adds synchronisation, and on a busy 2-core machine
-    # it makes every op wait for a descheduled thread (seen here: 30x slower).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _cfg() -> dict:
