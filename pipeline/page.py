@@ -250,9 +250,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
                 t = int(c.get("end_types", [0, 0])[j])
                 ends.append(f'<circle class="m" cx="{p[0]:.1f}" cy="{p[1]:.1f}" r="2" '
                             f'fill="{_hex(TYPE_COLOURS.get(t, (0, 0, 0)))}" stroke="#000"/>')
-        add("curves", "final curves", '<g fill="none" stroke-width="2" vector-effect="non-scaling-stroke" '
-            'class="ns">' + "".join(body) + "</g>", True)
-        add("ends", "curve end points", '<g stroke-width="0.6" vector-effect="non-scaling-stroke">'
+        add("curves", "final curves", '<g fill="none" stroke-width="2">' + "".join(body) + "</g>", True)
+        add("ends", "curve end points", '<g stroke-width="0.6">'
             + "".join(ends) + "</g>", True)
         counts["curves"] = len(ex)
     kps = []
@@ -284,7 +283,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
 _CSS = """
 *{box-sizing:border-box}body{margin:0;font:13px system-ui,sans-serif;display:flex;height:100vh;overflow:hidden}
 #side{width:380px;overflow:auto;padding:8px 10px;border-right:1px solid #ccc;background:#fafafa}
-#main{flex:1;position:relative;background:#fff}#view{width:100%;height:100%;display:block;cursor:crosshair}
+#main{flex:1;position:relative;background:#fff}#view path,#view circle.m{vector-effect:non-scaling-stroke}#view{width:100%;height:100%;display:block;cursor:crosshair}
 h1{font-size:15px;margin:4px 0 8px}h2{font-size:13px;margin:12px 0 4px}label{display:block;margin:2px 0}
 table{border-collapse:collapse;font-size:11px}td,th{border-bottom:1px solid #ddd;padding:2px 4px;text-align:left;
 vertical-align:top}code{font-size:11px}textarea{width:100%;height:120px;font-size:11px}
