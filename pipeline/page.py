@@ -68,6 +68,27 @@ def latest_keys(store: ArtifactStore, image: str | Path) -> dict[str, str]:
     return chain_keys(store, last[0], last[1])
 
 
+def planned_keys(store: ArtifactStore, image: str | Path, overrides: list[str] | None = None) -> dict[str, str]:
+    """Keys of the artifacts ``polyvec input=IMAGE [overrides]`` would use (its config composed as the
+    CLI does, ``<stem>.keypoints.json`` beside the image included), when its last stage is stored;
+    otherwise :func:`latest_keys`.
+    """
+    from hydra import compose, initialize_config_module
+
+    from pipeline.registry import active_stages
+    from pipeline.runner import plan
+
+    try:
+        with initialize_config_module(config_module="conf", version_base=None):
+            cfg = compose(config_name="config", overrides=list(overrides or []))
+        (tasks,) = plan([image], cfg, active_stages())
+    except ValueError:  # a malformed edits file beside the image (pipeline.edits.EditsError)
+        return latest_keys(store, image)
+    if tasks and store.exists(tasks[-1].stage, tasks[-1].key):
+        return chain_keys(store, tasks[-1].stage, tasks[-1].key)
+    return latest_keys(store, image)
+
+
 def _png_uri(img: np.ndarray) -> str:
     """``data:`` URI of a uint8 image (H, W), (H, W, 3) or (H, W, 4)."""
     from PIL import Image
@@ -405,9 +426,10 @@ def write_page(store: ArtifactStore, image: str | Path, out: str | Path, keys: d
     out : path
         The HTML file to write.
     keys : dict, optional
-        Stage → key of the artifacts to draw (a batch's); default: :func:`latest_keys`.
+        Stage → key of the artifacts to draw (a batch's); default: :func:`planned_keys` (those of the
+        default config, else the newest stored).
     """
-    keys = keys if keys is not None else latest_keys(store, image)
+    keys = keys if keys is not None else planned_keys(store, image)
     if "prep" not in keys:
         raise LookupError(f"no prep artifact for {image} in {store.url}")
     out = Path(out)

@@ -92,6 +92,10 @@ def test_edits_beside_the_input_are_picked_up_and_rerun_only_topology_on(work):
     assert np.hypot(*(ends - [40.0, 150.0]).T).min() < 1.0, "no curve ends at the added junction"
     before = _curve_ends(work / "out" / "polyvec-example.json")
     assert np.hypot(*(before - [40.0, 150.0]).T).min() > 10.0
+    # the page of the drawing now draws the corrected run: the added junction is an edit on it
+    r = run_cli("page", str(img), "-o", str(img.with_suffix(".html")), cwd=work, module="pipeline.inspect")
+    assert r.returncode == 0, r.stderr
+    assert '{"x": 40.0, "y": 150.0, "orig": 0, "cur": 3}' in img.with_suffix(".html").read_text()
 
 
 def test_malformed_edits_are_one_error_line(work):
