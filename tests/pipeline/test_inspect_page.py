@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, run_cli
+from tests.pipeline.cdp import chromium_path
 
 LAYERS = ("drawing", "band", "h1", "hclass", "field", "graph", "candidates", "selected", "curves", "ends")
 RERUN = {"keypoint_edits", "topology", "flow", "select", "export"}
@@ -135,12 +136,11 @@ def test_the_readme_commands_run(work):
 
 
 # -- a real browser ----------------------------------------------------------------------------
+@pytest.mark.skipif(chromium_path() is None,
+                    reason="chromium is not installed (Debian package `chromium`; .ci/run installs it with apt-get)")
 def test_browser_round_trip_toggle_add_a_junction_save_and_rerun(work, tmp_path):
-    from tests.pipeline.cdp import Browser, chromium_path
-
-    if chromium_path() is None:
-        pytest.skip("chromium is not installed (Debian package `chromium`; .ci/run installs it with apt-get)")
     pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+    from tests.pipeline.cdp import Browser
     img = _copy_image(work, "browser")
     r = run_cli("page", str(img), "-o", str(img.with_suffix(".html")), cwd=work, module="pipeline.inspect")
     assert r.returncode == 0, r.stderr
