@@ -150,11 +150,45 @@ def run(cfg: DictConfig) -> BatchResult:
     from pipeline.registry import active_stages
 
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
+    if "keypoint_edits" in stages:
+        announce_edits(images, cfg, console)
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         batch = run_batch(images, cfg, on_result=prog, store=store)
     write_outputs(batch, store, out_dir)
     print_summary(batch, console, bool(cfg.runtime.get("debug", False)))
+    if cfg.runtime.get("pages", False):
+        from pipeline.page import write_pages
+
+        for page in write_pages(batch, store, out_dir):
+            console.print(f"wrote {page}", highlight=False, soft_wrap=True)
     return batch
+
+
+def announce_edits(images: list[Path], cfg: DictConfig, console) -> None:
+    """Check the keypoint edits files that apply and print one line per image that has one.
+
+    Raises
+    ------
+    UsageError
+        ``keypoint_edits.file`` with several inputs, or an edits file that is unreadable or malformed.
+    """
+    from pipeline.edits import EditsError, find_edits, read_edits
+    from pipeline.runner import stage_config
+
+    section = stage_config(cfg, "keypoint_edits")
+    if section.get("file") and len(images) > 1:
+        raise UsageError(f"keypoint_edits.file names one drawing's edits, but the input has {len(images)} images; "
+                         "put <stem>.keypoints.json beside each image instead")
+    for image in images:
+        path = find_edits(image, section)
+        if path is None:
+            continue
+        try:
+            read_edits(path)
+        except EditsError as exc:
+            raise UsageError(str(exc)) from None
+        how = "keypoint_edits.file" if section.get("file") else "found beside the input"
+        console.print(f"keypoint edits: {path} for {image} ({how})", highlight=False, soft_wrap=True)
 
 
 class ExitCode:

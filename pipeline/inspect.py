@@ -6,6 +6,7 @@ Examples
 ``polyvec-inspect list drawing.png``              artifacts of one image (stage, key, size, time, config)
 ``polyvec-inspect show graph 3fa2``               one manifest (key prefixes are enough)
 ``polyvec-inspect render drawing.png field -o field.png``   an artifact drawn over the drawing
+``polyvec-inspect page drawing.png``              the interactive inspection page (drawing.html)
 """
 
 from __future__ import annotations
@@ -99,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--key", help="key prefix, to pick one of several artifacts")
     p.add_argument("-o", "--out", help="PNG path (default: <image stem>.<stage>.png)")
     p.add_argument("--scale", type=int, default=2)
+    p = sub.add_parser("page", help="write the interactive inspection page (HTML) of a drawing")
+    p.add_argument("image", help="the input image (its newest chain of artifacts is drawn)")
+    p.add_argument("-o", "--out", help="HTML path (default: <image stem>.html)")
     args = parser.parse_args(argv)
     console = Console()
     store = ArtifactStore(args.store)
@@ -113,6 +117,12 @@ def main(argv: list[str] | None = None) -> int:
             summary = {k: (f"list[{len(v)}]" if isinstance(v, list) else v) for k, v in data.items()
                        if not isinstance(v, str) or len(v) < 200}
             console.print_json(json.dumps(summary, default=str))
+            return 0
+        if args.cmd == "page":
+            from pipeline.page import write_page
+
+            out = write_page(store, args.image, args.out or f"{Path(args.image).stem}.html")
+            console.print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)", highlight=False, soft_wrap=True)
             return 0
         key = resolve(store, args.stage, args.key, args.image)
         from PIL import Image

@@ -2,8 +2,8 @@
 
 The DAG of one image (DESIGN.md)::
 
-    prep ─┬─► keypoints ─────────────────┐
-          └─► field ─► graph ─► topology ◄┘
+    prep ─┬─► keypoints ─► keypoint_edits ─┐
+          └─► field ─► graph ─► topology ◄──┘
                          │         │
                          └──────► flow ─► select ─► export
 """
@@ -50,9 +50,11 @@ class StageSpec:
 STAGES: tuple[StageSpec, ...] = (
     StageSpec("prep", "stages.prep", (), "zarr: grey, mask"),
     StageSpec("keypoints", "stages.keypoints", ("prep",), "zarr: 4 heatmaps; JSON: typed points"),
+    StageSpec("keypoint_edits", "stages.keypoint_edits", ("keypoints",),
+              "zarr: edited points, types, scores; JSON: typed points and the edit log"),
     StageSpec("field", "stages.field", ("prep",), "zarr: c0, c2, roots, singular cells, extension"),
     StageSpec("graph", "stages.graph", ("prep", "field"), "zarr: vertices, edges, streamlines"),
-    StageSpec("topology", "stages.topology", ("prep", "field", "graph", "keypoints"),
+    StageSpec("topology", "stages.topology", ("prep", "field", "graph", "keypoint_edits"),
               "JSON: candidate paths; zarr: pixel coverage"),
     StageSpec("flow", "stages.flow", ("prep", "field", "graph", "topology"), "zarr: flowed polylines; JSON: energies"),
     StageSpec("select", "stages.select", ("prep", "topology", "flow"), "JSON: chosen curves"),

@@ -101,11 +101,24 @@ def stage_config(cfg: Any, stage: str) -> dict:
 
 
 def plan(images: Iterable[str | Path], cfg: Any, stages: list[StageSpec]) -> list[list[Task]]:
-    """Tasks of every image, in topological order, with their content-addressed keys."""
+    """Tasks of every image, in topological order, with their content-addressed keys.
+
+    The ``keypoint_edits`` config is per image: the parsed edits file that applies to it
+    (:func:`pipeline.edits.stage_config`).
+
+    Raises
+    ------
+    pipeline.edits.EditsError
+        When an image's keypoint edits file is unreadable or malformed.
+    """
+    from pipeline import edits
+
     out = []
     configs = {s.name: stage_config(cfg, s.name) for s in stages}
     for image in images:
         image = str(image)
+        if "keypoint_edits" in configs:  # per image: the parsed <stem>.keypoints.json (edits.EditsError)
+            configs["keypoint_edits"] = edits.stage_config(image, stage_config(cfg, "keypoint_edits"))
         try:
             image_key = hash_bytes(Path(image).read_bytes())
         except OSError as exc:

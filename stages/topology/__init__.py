@@ -170,7 +170,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         The ``topology`` config section (keys of :class:`TopologyConfig`).
     prep, field, graph, keypoints : Artifact
         Upstream artifacts (stages/INTERFACES.md): ``mask``; ``roots``; the graph arrays; ``points``
-        and ``types``.
+        and ``types``. The engine passes the keypoints as ``keypoint_edits`` (the detector's
+        keypoints after the user's edits, same arrays).
 
     Returns
     -------
@@ -180,6 +181,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         (S, 4) ``[x0, y0, x1, y1]`` for rendering.
     """
     conf = TopologyConfig.from_dict(cfg)
+    if "keypoint_edits" in inputs:  # the engine's input: the detector's keypoints after the user's edits
+        inputs["keypoints"] = inputs.pop("keypoint_edits")
     missing = [n for n in ("prep", "field", "graph", "keypoints") if n not in inputs]
     if missing:
         raise InputError(f"topology stage needs the {', '.join(missing)} artifact(s)")

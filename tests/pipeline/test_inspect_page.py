@@ -1,0 +1,188 @@
+"""The inspection page and keypoint corrections, end to end: the page writer, the CLI's pick-up of
+``<stem>.keypoints.json``, the README's commands, and a round trip through a real (headless) browser.
+
+One store is built once for the module (the bundled example, in-process scheduler); every test
+works on its own copy of the drawing (same bytes, so the same cached artifacts).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import REPO, run_cli
+from tests.pipeline.cdp import chromium_path
+
+LAYERS = ("drawing", "band", "h1", "hclass", "field", "graph", "candidates", "selected", "curves", "ends")
+RERUN = {"keypoint_edits", "topology", "flow", "select", "export"}
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A folder with ``out/polyvec-example.png`` and a store holding all its artifacts."""
+    work = tmp_path_factory.mktemp("page")
+    r = run_cli("runtime.cluster=sync", cwd=work)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return work
+
+
+def _copy_image(work: Path, name: str) -> Path:
+    d = work / name
+    d.mkdir()
+    img = d / "polyvec-example.png"
+    shutil.copy(work / "out" / "polyvec-example.png", img)
+    return img
+
+
+def _written_after(work: Path, image: Path, t0: float) -> set[str]:
+    from pipeline.inspect import artifacts_of
+    from pipeline.store import ArtifactStore
+
+    rows = artifacts_of(ArtifactStore(str(work / "artifacts")), str(image))
+    return {stage for stage, _, m in rows if m.get("written_at", 0) >= t0}
+
+
+def _curve_ends(svg_json: Path) -> np.ndarray:
+    curves = json.loads(svg_json.read_text())["curves"]
+    return np.array([p for c in curves for p in (c["points"][0], c["points"][-1])], float)
+
+
+def test_page_has_every_layer_and_stays_small(work):
+    r = run_cli("page", "out/polyvec-example.png", "-o", "pages/example.html", cwd=work, module="pipeline.inspect")
+    assert r.returncode == 0, r.stderr
+    page = work / "pages" / "example.html"
+    text = page.read_text()
+    for layer in LAYERS:
+        assert f'id="layer-{layer}"' in text, layer
+        assert f'id="toggle-{layer}"' in text, layer
+    assert 'id="save"' in text and 'id="edits-json"' in text
+    # self-contained: no URL outside the file (SVG namespace aside), images embedded
+    urls = set(re.findall(r'(?:src|href)="([^"]+)"', text))
+    assert urls and all(u.startswith("data:image/png;base64,") for u in urls), urls
+    assert page.stat().st_size < 1_000_000
+    # the side panel: every stage with its key and seconds, the counts
+    for stage in ("prep", "keypoints", "keypoint_edits", "field", "graph", "topology", "flow", "select", "export"):
+        assert f"<tr><td>{stage}</td>" in text
+    assert '"keypoints"' in text and "curves" in text
+
+
+def test_runtime_pages_writes_one_page_per_drawing(work):
+    r = run_cli("runtime.cluster=sync", "runtime.pages=true", cwd=work)
+    assert r.returncode == 0, r.stderr
+    assert (work / "out" / "polyvec-example.html").is_file()
+    assert "wrote out/polyvec-example.html" in r.stderr
+
+
+def test_edits_beside_the_input_are_picked_up_and_rerun_only_topology_on(work):
+    img = _copy_image(work, "cli")
+    edits = img.with_name("polyvec-example.keypoints.json")
+    edits.write_text(json.dumps({"format": "polyvec-keypoint-edits", "version": 1,
+                                 "added": [{"x": 40.0, "y": 150.0, "type": "junction"}]}))
+    t0 = time.time()
+    r = run_cli(f"input={img}", "output=cli/out", cwd=work)
+    assert r.returncode == 0, r.stderr
+    assert f"keypoint edits: {edits} for {img} (found beside the input)" in r.stderr
+    assert _written_after(work, img, t0) == RERUN
+    ends = _curve_ends(work / "cli" / "out" / "polyvec-example.json")
+    assert np.hypot(*(ends - [40.0, 150.0]).T).min() < 1.0, "no curve ends at the added junction"
+    before = _curve_ends(work / "out" / "polyvec-example.json")
+    assert np.hypot(*(before - [40.0, 150.0]).T).min() > 10.0
+    # the page of the drawing now draws the corrected run: the added junction is an edit on it
+    r = run_cli("page", str(img), "-o", str(img.with_suffix(".html")), cwd=work, module="pipeline.inspect")
+    assert r.returncode == 0, r.stderr
+    assert '{"x": 40.0, "y": 150.0, "orig": 0, "cur": 3}' in img.with_suffix(".html").read_text()
+
+
+def test_malformed_edits_are_one_error_line(work):
+    img = _copy_image(work, "bad")
+    edits = img.with_name("polyvec-example.keypoints.json")
+    edits.write_text('{"added": [{"x": 3, "y": 4, "type": "tee"}]}')
+    r = run_cli(f"input={img}", "output=bad/out", cwd=work)
+    assert r.returncode == 2
+    assert r.stderr.strip() == (f"polyvec: error: keypoint edits {edits}: added[0]: type must be endpoint, "
+                                "junction or corner (or 1, 3, 5), got 'tee'")
+    edits.write_text("{not json")
+    r = run_cli(f"input={img}", "output=bad/out", cwd=work)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "not JSON" in r.stderr
+
+
+def test_the_readme_commands_run(work):
+    """Every command of the README's section on the page and keypoint corrections, as written."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Correcting keypoints on the inspection page", 1)[1].split("\n## ", 1)[0]
+    block = section.split("```bash", 1)[1].split("```", 1)[0]
+    commands = [ln.split("#", 1)[0].strip() for ln in block.splitlines() if ln.split("#", 1)[0].strip()]
+    assert len(commands) >= 4
+    d = work / "readme"
+    d.mkdir()
+    (d / "out").mkdir()
+    shutil.copy(work / "out" / "polyvec-example.png", d / "out" / "polyvec-example.png")
+    fix = {"format": "polyvec-keypoint-edits", "version": 1, "added": [{"x": 180.0, "y": 150.0, "type": "junction"}]}
+    (d / "out" / "polyvec-example.keypoints.json").write_text(json.dumps(fix))
+    (d / "fix.keypoints.json").write_text(json.dumps(fix))
+    shutil.copytree(work / "artifacts", d / "artifacts")
+    for cmd in commands:
+        prog, *args = cmd.split()
+        module = {"polyvec": "pipeline.cli", "polyvec-inspect": "pipeline.inspect"}[prog]
+        r = run_cli(*args, cwd=d, module=module)
+        assert r.returncode == 0, f"{cmd}: {r.stderr[-1500:]}"
+    assert (d / "out" / "polyvec-example.html").is_file()
+
+
+# -- a real browser ----------------------------------------------------------------------------
+@pytest.mark.skipif(chromium_path() is None,
+                    reason="chromium is not installed (Debian package `chromium`; .ci/run installs it with apt-get)")
+def test_browser_round_trip_toggle_add_a_junction_save_and_rerun(work, tmp_path):
+    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+    from tests.pipeline.cdp import Browser
+    img = _copy_image(work, "browser")
+    r = run_cli("page", str(img), "-o", str(img.with_suffix(".html")), cwd=work, module="pipeline.inspect")
+    assert r.returncode == 0, r.stderr
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    browser = Browser()
+    try:
+        browser.browser_command("Browser.setDownloadBehavior", behavior="allow", downloadPath=str(downloads))
+        browser.open(img.with_suffix(".html").resolve().as_uri())
+        # toggle a layer on: the traced graph shows
+        assert browser.eval("getComputedStyle(document.getElementById('layer-graph')).display") == "none"
+        browser.click_selector("#toggle-graph")
+        assert browser.eval("getComputedStyle(document.getElementById('layer-graph')).display") != "none"
+        # zoom to 4× around the right wall, then add a junction there by a click
+        browser.eval("polyvecPage.setView(150, 120, 75)")
+        browser.click_selector("#add-t3")
+        x, y = browser.eval("(() => {const p = polyvecPage.toScreen(180.2, 150); return [p.x, p.y]})()")
+        n0 = browser.eval("polyvecPage.points.length")
+        browser.click(x, y)
+        assert browser.eval("polyvecPage.points.length") == n0 + 1
+        browser.click_selector("#save")
+        target = downloads / "polyvec-example.keypoints.json"
+        deadline = time.time() + 20
+        while not target.is_file() and time.time() < deadline:
+            time.sleep(0.1)
+        assert target.is_file(), f"no download in {list(downloads.iterdir())}"
+        shown = json.loads(browser.eval("document.getElementById('edits-json').value"))
+    finally:
+        browser.close()
+    saved = json.loads(target.read_text())
+    assert saved == shown
+    assert saved["removed"] == [] and saved["retyped"] == []
+    (added,) = saved["added"]
+    assert added["type"] == "junction" and abs(added["x"] - 180.2) < 0.6 and abs(added["y"] - 150) < 0.6
+    # the download goes beside the drawing, and the CLI re-run takes it
+    shutil.copy(target, img.with_name(target.name))
+    t0 = time.time()
+    r = run_cli(f"input={img}", "output=browser/out", cwd=work)
+    assert r.returncode == 0, r.stderr
+    assert "found beside the input" in r.stderr
+    assert _written_after(work, img, t0) == RERUN
+    ends = _curve_ends(work / "browser" / "out" / "polyvec-example.json")
+    before = _curve_ends(work / "out" / "polyvec-example.json")
+    at = np.array([added["x"], added["y"]])
+    assert np.hypot(*(ends - at).T).min() < 1.0 < 10.0 < np.hypot(*(before - at).T).min()

@@ -1,0 +1,72 @@
+"""The keypoint_edits stage: validation of the edits document and its application to detections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.artifact import Artifact
+from stages.errors import InputError
+from stages.keypoint_edits import run, validate_edits
+
+
+def _keypoints(h: int = 64, w: int = 80) -> Artifact:
+    pts = np.array([[10.5, 10.5], [40.2, 30.7], [70.0, 50.0]], np.float32)
+    return Artifact(arrays={"heatmaps": np.zeros((4, h, w), np.float32), "points": pts,
+                            "types": np.array([1, 3, 5], np.int8), "scores": np.array([0.9, 0.8, 0.7], np.float32)},
+                    data={"points": []})
+
+
+CFG = {"match_radius": 3.0}
+
+
+def test_no_edits_pass_the_detections_through():
+    out = run(dict(CFG, edits=None), _keypoints())
+    np.testing.assert_array_equal(out["points"], _keypoints()["points"])
+    np.testing.assert_array_equal(out["types"], [1, 3, 5])
+    assert out.data["edit_counts"] == {"added": 0, "removed": 0, "retyped": 0}
+    assert "heatmaps" not in out.arrays  # the page reads the detector's heatmaps; they are not copied
+
+
+def test_added_removed_retyped_are_applied_by_pixel_coordinates():
+    edits = {"format": "polyvec-keypoint-edits", "version": 1, "width": 80, "height": 64,
+             "added": [{"x": 20, "y": 5, "type": "junction"}, {"x": 60, "y": 60, "type": 5}],
+             "removed": [{"x": 11.0, "y": 9.8}],
+             "retyped": [{"x": 69.0, "y": 51.0, "type": "endpoint"}]}
+    out = run(dict(CFG, edits=edits), _keypoints())
+    np.testing.assert_allclose(out["points"], [[40.2, 30.7], [70.0, 50.0], [20, 5], [60, 60]], atol=1e-5)
+    np.testing.assert_array_equal(out["types"], [3, 1, 3, 5])
+    np.testing.assert_allclose(out["scores"], [0.8, 0.7, 1.0, 1.0])
+    assert out.data["edit_counts"] == {"added": 2, "removed": 1, "retyped": 1}
+    assert [p["edited"] for p in out.data["points"]] == ["", "retyped", "added", "added"]
+    removed = [e for e in out.data["edits"] if e["op"] == "removed"]
+    assert removed == [{"op": "removed", "x": 11.0, "y": 9.8, "type": 1, "keypoint": 0}]
+
+
+@pytest.mark.parametrize("edits, message", [
+    ([], "expected a JSON object"),
+    ({"added": [{"x": 1, "y": 2, "type": "tee"}]}, "added[0]: type must be endpoint, junction or corner"),
+    ({"added": [{"x": 1, "type": 3}]}, "added[0]: missing 'y'"),
+    ({"added": [{"x": 1, "y": 2}]}, "added[0]: missing 'type'"),
+    ({"removed": {"x": 1}}, "removed must be a list"),
+    ({"moved": []}, "unknown field(s) moved"),
+    ({"format": "svg"}, "format must be"),
+    ({"width": -3}, "width must be a positive integer"),
+])
+def test_bad_documents_are_one_line_errors(edits, message):
+    with pytest.raises(InputError, match=None) as info:
+        validate_edits(edits)
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_an_edit_that_matches_no_detection_is_an_error():
+    with pytest.raises(InputError, match=r"removed\[0\] at \(30.0, 30.0\): no detected keypoint within 3 px"):
+        run(dict(CFG, edits={"removed": [{"x": 30, "y": 30}]}), _keypoints())
+    with pytest.raises(InputError, match="already removed"):
+        run(dict(CFG, edits={"removed": [{"x": 10, "y": 10}], "retyped": [{"x": 10, "y": 11, "type": 3}]}),
+            _keypoints())
+
+
+def test_edits_for_another_image_size_are_refused():
+    with pytest.raises(InputError, match="edits are for a 100×64 drawing, this one is 80×64"):
+        run(dict(CFG, edits={"width": 100, "height": 64}), _keypoints())
