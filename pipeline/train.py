@@ -854,7 +854,9 @@ def train_type_classifier(cfg: dict) -> dict:
     t_data = time.time() - t0
     clf = fit_type_classifier(x, y, tc)
     # Class scores are the first three features: their argmax is the paper's typing.
-    vfiles = _vector_files(cfg["train"].get("vector") or {}) if use_vector else []
+    vcfg = cfg["train"].get("vector") or {}
+    vfiles = category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)),
+                            int(vcfg.get("split_seed", 0)))[0] + _vector_files(vcfg, "stroke3") if use_vector else []
     record = {"mode": "type_classifier", "keypoints": int(len(y)), "val_keypoints": int(len(vy)),
               "vector_files": [Path(f).name for f in vfiles],
               "class_counts": np.bincount(y, minlength=3).tolist(), "data_seconds": t_data,
