@@ -37,7 +37,7 @@ from scipy import ndimage
 from stages.artifact import Artifact
 from stages.errors import InputError
 
-STAGE_VERSION = "2"  # 2: paper-white pixels repaired only as one-pixel pinholes
+STAGE_VERSION = "3"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank
 
 _EIGHT = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]])
 
@@ -140,11 +140,15 @@ def normalise_contrast(grey: np.ndarray, low_percentile: float, high_percentile:
         When the image is uniform (no ink at all).
     """
     lo, hi = np.percentile(grey, [low_percentile, high_percentile])
-    if grey.max() - grey.min() < min_contrast or hi - lo < min_contrast * 0.5:
+    # Blank means uniform grey levels, judged on the extremes only: the percentiles of a sparse drawing
+    # (one 2-px line on a 600×600 page is 0.3 % ink, below low_percentile) are both paper.
+    if grey.max() - grey.min() < min_contrast:
         raise InputError("blank image: no ink found (uniform grey levels)")
     if hi - lo < min_contrast:
         # Percentiles miss very sparse ink (a few strokes on a big page): fall back to the extremes.
         lo = float(grey.min())
+        if hi - lo < min_contrast:
+            hi = float(grey.max())
     return np.clip((grey - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
 
 

@@ -74,3 +74,16 @@ def test_inspect_list_show_render(tmp_path, cli):
         assert Image.open(out).size[0] >= 48
     missing = cli("show", "graph", "ffff", cwd=tmp_path, module="pipeline.inspect")
     assert missing.returncode == 2 and "no graph artifact" in missing.stderr
+
+
+def test_sparse_drawing_runs_through_prep(tmp_path, cli):
+    """One 2-px line on a 600×600 page (0.3 % ink) is vectorised, not refused as blank."""
+    import numpy as np
+    from PIL import Image
+
+    g = np.full((600, 600), 255, np.uint8)
+    g[300:302, 60:540] = 0
+    Image.fromarray(g, "L").save(tmp_path / "one-line.png")
+    proc = cli("input=one-line.png", "runtime.until=prep", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "blank" not in proc.stderr

@@ -126,3 +126,19 @@ def test_huge_image_is_refused_before_decoding():
     data = _encode(Image.fromarray(np.full((400, 500), 255, np.uint8), "L"), "PNG")
     with pytest.raises(InputError, match="too large"):
         prep.run(dict(CFG, max_pixels=100_000), data)
+
+
+def _sparse_page(size: int, rows: list[int]) -> bytes:
+    """Black 2-px horizontal lines on a white page: well below 0.5 % ink."""
+    g = np.full((size, size), 255, np.uint8)
+    for r in rows:
+        g[r:r + 2, size // 10: size - size // 10] = 0
+    return _encode(Image.fromarray(g, "L"), "PNG")
+
+
+@pytest.mark.parametrize("size, rows", [(600, [300]), (1000, [200, 500, 800])])
+def test_sparse_drawing_is_not_blank(size, rows):
+    """A drawing of one line is a drawing: the blank check must not fire before the sparse-ink fallback."""
+    art = prep.run(CFG, _sparse_page(size, rows))
+    assert art.arrays["mask"].sum() == pytest.approx(len(rows) * 2 * (size - 2 * (size // 10)), rel=0.05)
+    assert art.arrays["grey"].min() == 0.0 and art.arrays["grey"].max() == 1.0
