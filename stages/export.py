@@ -12,8 +12,8 @@ Output (data of the artifact; the engine writes the files):
   ``widths``) when ``widths_from_graph`` is set;
 * ``curves`` — ``{"id", "points", "end_types", "end_keypoints", "parts", "width"}`` per curve, in
   selection order (joined curves last);
-* ``bezier_svg`` (when ``bezier.enabled``) — the same curves as piecewise cubic Béziers fitted within
-  ``bezier.tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
+* ``bezier_svg`` (when ``bezier``) — the same curves as piecewise cubic Béziers fitted within
+  ``bezier_tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
   least-squares control points for fixed end tangents, Newton re-parametrisation, split at the point
   of largest error).  The fit keeps the curve's ends exactly, and its pieces join with a common
   tangent (only keypoints are corners, and they are the curves' ends).
@@ -110,7 +110,7 @@ import numpy as np
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 
-STAGE_VERSION = "3"
+STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,7 @@ class ExportParams:
     precision: int
     bezier: bool
     bezier_tolerance: float
+    min_length_px: float
     join: bool
     join_max_turn_deg: float
     join_tangent_px: float
@@ -148,8 +149,9 @@ class ExportParams:
         """Build from the config dict; every key must be present."""
         try:
             p = cls(stroke_width=float(cfg["stroke_width"]), widths_from_graph=bool(cfg["widths_from_graph"]),
-                    precision=int(cfg["precision"]), bezier=bool(cfg["bezier"]["enabled"]),
-                    bezier_tolerance=float(cfg["bezier"]["tolerance"]), join=bool(cfg["join"]["enabled"]),
+                    precision=int(cfg["precision"]), bezier=_flag(cfg["bezier"], "export.bezier"),
+                    bezier_tolerance=float(cfg["bezier_tolerance"]),
+                    min_length_px=float(cfg["min_length_px"]), join=bool(cfg["join"]["enabled"]),
                     join_max_turn_deg=float(cfg["join"]["max_turn_deg"]),
                     join_tangent_px=float(cfg["join"]["tangent_px"]),
                     join_margin_deg=float(cfg["join"]["margin_deg"]),
@@ -171,10 +173,17 @@ class ExportParams:
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
-            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier.tolerance > 0")
+            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier_tolerance > 0")
         if not 0 <= p.join_max_turn_deg <= 180 or p.join_tangent_px <= 0:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
         return p
+
+
+def _flag(value, name: str) -> bool:
+    """A true/false config value; anything else (``export.bezier.enabled``, the old spelling) is an error."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise InputError(f"{name} must be true or false (got {value!r}; write {name}=true)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -858,6 +867,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = extend_overshoots(curves, np.asarray(mask, bool), params.join_tangent_px, params.overshoot_min_px,
                                    params.overshoot_min_widths, params.overshoot_max_px,
                                    params.overshoot_max_widths, params.overshoot_clearance)
+    # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
+    # one point: `M x y L x y`), and has no tangent for the Bézier fit.
+    curves = [c for c in curves if _length(c["points"]) >= params.min_length_px]
     for c in curves:
         pts = c["points"]
         c["points"] = pts.tolist()

@@ -87,3 +87,13 @@ def test_sparse_drawing_runs_through_prep(tmp_path, cli):
     proc = cli("input=one-line.png", "runtime.until=prep", "runtime.cluster=sync", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "blank" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_export_bezier_true_as_the_readme_spells_it(tmp_path, cli):
+    """`export.bezier=true` (README) writes the Bézier SVG beside the polyline one."""
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    proc = cli("input=vee.png", "export.bezier=true", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert (tmp_path / "out" / "vee.svg").exists() and (tmp_path / "out" / "vee.bezier.svg").exists()
