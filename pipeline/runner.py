@@ -11,8 +11,10 @@ from __future__ import annotations
 import json
 import os
 import resource
+import signal
 import socket
 import sys
+import threading
 import time
 import traceback
 from collections import OrderedDict
@@ -198,6 +200,8 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
             except IsADirectoryError:
                 raise InputError("is a directory, not an image") from None
             except OSError as exc:
+                if Path(task.image).is_symlink() and not Path(task.image).exists():
+                    raise InputError(f"broken symbolic link (to {os.readlink(task.image)})") from None
                 raise InputError(f"cannot read file ({exc.strerror or exc})") from None
             kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
         else:
@@ -248,9 +252,19 @@ def get_client(runtime: dict):
     if address:
         client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
     else:
-        cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
-                               dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
-                               env=dict(THREAD_ENV), silence_logs=50)
+        # The worker processes are started with Ctrl-C ignored (an ignored SIGINT survives exec, and
+        # Python then installs no KeyboardInterrupt handler): the terminal sends Ctrl-C to the whole
+        # process group, and each worker would print its own tracebacks; the driver reports the
+        # interrupt once and shuts them down.
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:
+            cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
+                                   env=dict(THREAD_ENV), silence_logs=50)
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
         client = Client(cluster)
     _CLIENT, _CLIENT_SPEC = client, spec
     return client
@@ -377,23 +391,43 @@ def _run_dask(pending, store_url, batch, report, client) -> None:
 
 
 # -- outputs -----------------------------------------------------------------------------------
-def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Path) -> dict[str, list[str]]:
-    """Write ``<stem>.svg`` and ``<stem>.json`` of every image whose export artifact exists."""
+def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Path,
+                  names: dict[str, str | Path] | None = None) -> dict[str, list[str]]:
+    """Write ``<name>.svg``, ``<name>.json`` (and ``<name>.bezier.svg``) of every exported image.
+
+    Parameters
+    ----------
+    batch : BatchResult
+    store : ArtifactStore
+    output_dir : path
+    names : dict, optional
+        Image → output path relative to ``output_dir`` without suffix (the CLI mirrors the input
+        tree); by default the image's stem. A name is a function of its image alone, never of which
+        other images failed.
+
+    Returns
+    -------
+    dict
+        Image → files written.
+
+    Raises
+    ------
+    ValueError
+        When two images of the batch have the same name.
+    """
     output_dir = Path(output_dir)
+    names = {image: Path(names[image]) if names and image in names else Path(Path(image).stem)
+             for image in batch.results}
+    if len(set(names.values())) != len(names):
+        raise ValueError("two images of the batch have the same output name")
     written: dict[str, list[str]] = {}
-    used: set[str] = set()
     for image, per in batch.results.items():
         r = per.get("export")
         if r is None or r.status not in ("computed", "cached"):
             continue
         art = load_artifact(store, "export", r.key)
-        stem = Path(image).stem
-        name, n = stem, 1
-        while name in used:
-            n += 1
-            name = f"{stem}-{n}"
-        used.add(name)
-        output_dir.mkdir(parents=True, exist_ok=True)
+        name = str(names[image])
+        (output_dir / name).parent.mkdir(parents=True, exist_ok=True)
         files = []
         svg = output_dir / f"{name}.svg"
         _atomic_write(svg, art.data["svg"])

@@ -97,3 +97,87 @@ def test_export_bezier_true_as_the_readme_spells_it(tmp_path, cli):
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     assert (tmp_path / "out" / "vee.svg").exists() and (tmp_path / "out" / "vee.bezier.svg").exists()
+
+
+def test_help_describes_polyvec(tmp_path, cli):
+    """`polyvec --help` describes the tool, its stages and examples (not Hydra's generic help)."""
+    proc = cli("--help", cwd=tmp_path)
+    assert proc.returncode == 0
+    assert "powered by Hydra" not in proc.stdout and "bench" not in proc.stdout.split("See also")[0]
+    assert "Vectorise" in proc.stdout and "Examples" in proc.stdout
+    for stage in ("prep", "keypoints", "field", "graph", "topology", "flow", "select", "export"):
+        assert stage in proc.stdout
+    assert not list(tmp_path.iterdir())
+
+
+def test_plain_paths_with_odd_characters(tmp_path, cli):
+    """Paths with ü ( , ✓ work as positional arguments and as input=, beside overrides."""
+    folder = tmp_path / "my drawings (2024)"
+    folder.mkdir()
+    (folder / "cät,✓.png").write_bytes(synthetic.line(size=40).png_bytes())
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    for args in (("scans/", "my drawings (2024)/cät,✓.png"), ("input=my drawings (2024)/cät,✓.png",)):
+        proc = cli(*args, "runtime.until=prep", "runtime.cluster=sync", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+    assert len(list((tmp_path / "artifacts" / "prep").glob("*/*"))) == 2
+
+
+@pytest.mark.parametrize("args, message", [
+    (("export.foo=1",), "Could not override 'export.foo'"),
+    (("export.bezier.enabled=true",), "export.bezier.enabled"),
+    (("output=a(b)",), "cannot read the arguments"),
+    (("does/not/exist.png",), "input not found: does/not/exist.png"),
+])
+def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
+    proc = cli(*args, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr, proc.stderr
+    assert proc.stderr.startswith("polyvec: error: ")
+    assert not (tmp_path / "artifacts").exists()
+
+
+@pytest.mark.slow
+def test_output_tree_mirrors_the_input_tree(tmp_path, cli):
+    """clean/kitten and rough/kitten keep their own names; a failed image takes no other image's name."""
+    src = tmp_path / "scans"
+    for sub in ("clean", "rough"):
+        (src / sub).mkdir(parents=True)
+        (src / sub / "kitten.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    (src / "clean" / "a-bad.png").write_bytes(b"not an image")
+    (src / "clean" / "gone.png").symlink_to(tmp_path / "nowhere.png")
+    proc = cli("scans/", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 1
+    assert "a-bad.png: prep: not an image" in proc.stderr
+    assert "gone.png: prep: broken symbolic link" in proc.stderr
+    out = tmp_path / "out"
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*.svg")) == ["clean/kitten.svg", "rough/kitten.svg"]
+    # the summary names every file written
+    assert "wrote out/clean/kitten.svg, out/clean/kitten.json" in proc.stderr.replace("\n", "")
+
+
+@pytest.mark.slow
+def test_ctrl_c_prints_one_line(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during a dask batch."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for k in range(4):
+        (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob("artifacts/prep/*/*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
+    assert "Traceback" not in out
