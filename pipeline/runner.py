@@ -252,6 +252,8 @@ def get_client(runtime: dict):
     if address:
         client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
     else:
+        # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
+        # another dask runs on the machine.
         # The worker processes are started with Ctrl-C ignored (an ignored SIGINT survives exec, and
         # Python then installs no KeyboardInterrupt handler): the terminal sends Ctrl-C to the whole
         # process group, and each worker would print its own tracebacks; the driver reports the
@@ -260,7 +262,7 @@ def get_client(runtime: dict):
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
         try:
             cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
+                                   dashboard_address=":0", memory_limit=runtime.get("memory_limit", "auto"),
                                    env=dict(THREAD_ENV), silence_logs=50)
         finally:
             if main_thread:

@@ -181,3 +181,21 @@ def test_ctrl_c_prints_one_line(tmp_path):
     assert len(err.strip().splitlines()) == 1, err
     assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
     assert "Traceback" not in out
+
+
+def test_local_cluster_leaves_port_8787_alone(tmp_path, cli):
+    """Another dask (here: a socket) holding the dashboard's default port 8787 causes no warning."""
+    import socket
+
+    (tmp_path / "in").mkdir()
+    for k in range(2):
+        (tmp_path / "in" / f"l{k}.png").write_bytes(synthetic.line(size=40 + k).png_bytes())
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", 8787))
+            sock.listen()
+        except OSError:
+            pass  # already taken by someone else: the test holds all the same
+        proc = cli("input=in/", "runtime.until=prep", "runtime.cluster=local", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "8787" not in proc.stderr and "Warning" not in proc.stderr, proc.stderr
