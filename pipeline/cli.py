@@ -18,6 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from pipeline.registry import StageUnavailable
 from pipeline.runner import BatchResult, TaskResult, run_batch, write_outputs
 from pipeline.store import ArtifactStore
 
@@ -369,6 +370,10 @@ class ExitCode:
         except UsageError as exc:
             print(f"{self.prog}: error: {exc}", file=sys.stderr)
             self.code = 2
+            return
+        except StageUnavailable as exc:
+            print(f"{self.prog}: error: {exc}", file=sys.stderr)
+            self.code = 1
             return
         if failed and self.code == 0:
             self.code = 1
