@@ -19,7 +19,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline.registry import StageUnavailable
-from pipeline.runner import BatchResult, TaskResult, run_batch, write_outputs
+from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, write_outputs
 from pipeline.store import ArtifactStore
 
 HELP = """usage: polyvec [PATH ...] [key=value ...] [-m] [--cfg job]
@@ -234,7 +234,11 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
     PROGRESS.start(len(images), stages[-1] if stages else None)
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
-        batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store)
+        try:
+            batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store)
+        except ClusterError as exc:
+            store.remove_if_unused()  # a run that did nothing leaves no empty store folder
+            raise UsageError(str(exc)) from None
     write_outputs(batch, store, out_dir, {str(image): rel for image, rel in named})
     print_summary(batch, console, bool(cfg.runtime.get("debug", False)))
     return batch
@@ -367,7 +371,7 @@ class ExitCode:
         """Run one job; ``fn(cfg)`` returns True when something failed."""
         try:
             failed = fn(cfg)
-        except UsageError as exc:
+        except (UsageError, ClusterError) as exc:
             print(f"{self.prog}: error: {exc}", file=sys.stderr)
             self.code = 2
             return

@@ -40,6 +40,7 @@ class Task:
     key: str
     inputs: dict[str, str]
     config: dict
+    source: str = ""  # the image as an absolute path: a worker may run in another directory
 
 
 @dataclass
@@ -117,7 +118,8 @@ def plan(images: Iterable[str | Path], cfg: Any, stages: list[StageSpec]) -> lis
         for s in stages:
             inputs = {"image": image_key} if not s.inputs else {i: keys[i] for i in s.inputs}
             keys[s.name] = artifact_key(s.name, s.version, configs[s.name], inputs)
-            tasks.append(Task(image, image_key, s.name, s.version, keys[s.name], inputs, configs[s.name]))
+            tasks.append(Task(image, image_key, s.name, s.version, keys[s.name], inputs, configs[s.name],
+                              str(Path(image).absolute())))
         out.append(tasks)
     return out
 
@@ -194,14 +196,15 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
     try:
         spec = BY_NAME[task.stage]
         module = spec.load()
+        source = Path(task.source or task.image)
         if task.stage == "prep":
             try:
-                data = Path(task.image).read_bytes()
+                data = source.read_bytes()
             except IsADirectoryError:
                 raise InputError("is a directory, not an image") from None
             except OSError as exc:
-                if Path(task.image).is_symlink() and not Path(task.image).exists():
-                    raise InputError(f"broken symbolic link (to {os.readlink(task.image)})") from None
+                if source.is_symlink() and not source.exists():
+                    raise InputError(f"broken symbolic link (to {os.readlink(source)})") from None
                 raise InputError(f"cannot read file ({exc.strerror or exc})") from None
             kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
         else:
@@ -211,7 +214,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
         manifest = {
             "stage": task.stage, "version": task.version, "key": task.key, "config": task.config,
             "inputs": task.inputs, "image": task.image_key, "image_name": Path(task.image).name,
-            "image_path": str(Path(task.image).resolve()), "duration_s": round(duration, 4),
+            "image_path": str(source.resolve()), "duration_s": round(duration, 4),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
             "host": socket.gethostname(), "pid": os.getpid(), "libraries": library_versions(),
             "python": sys.version.split()[0],
@@ -232,6 +235,44 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
 
 
 # -- schedulers --------------------------------------------------------------------------------
+class ClusterError(RuntimeError):
+    """The dask scheduler cannot be reached, or its workers cannot reach the store (before any work)."""
+
+
+def check_store_reachable(client, store: ArtifactStore) -> None:
+    """Refuse a store the cluster's workers cannot see: a marker written here must exist for each worker.
+
+    Raises
+    ------
+    ClusterError
+        A worker does not see the marker (a local path on another machine, a ``memory://`` store).
+    """
+    import uuid
+
+    marker = f".reach-{uuid.uuid4().hex}"
+    with store.fs.open(store._join(marker), "wb") as f:
+        f.write(b"polyvec")
+    try:
+        seen = client.run(_sees_marker, store.url, marker)
+    finally:
+        store.fs.rm(store._join(marker))
+    blind = sorted(w for w, ok in seen.items() if not ok)
+    if blind:
+        raise ClusterError(f"store {store.url} is not reachable from {len(blind)} of {len(seen)} dask workers "
+                           f"(e.g. {blind[0]}): put store.path on a shared file system or an fsspec URL")
+
+
+def _sees_marker(url: str, marker: str) -> bool:
+    import fsspec
+
+    try:
+        fs, root = fsspec.core.url_to_fs(url)
+        return bool(fs.exists(os.path.join(root, marker) if fs.protocol in ("file", ("file", "local"))
+                              else f"{root.rstrip('/')}/{marker}"))
+    except Exception:  # noqa: BLE001 - a worker that cannot even open the URL does not see it
+        return False
+
+
 _CLIENT: Any = None
 _CLIENT_SPEC: tuple | None = None
 
@@ -250,7 +291,10 @@ def get_client(runtime: dict):
         return _CLIENT
     close_client()
     if address:
-        client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+        try:
+            client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"cannot reach the dask scheduler at {address} ({type(exc).__name__})") from None
     else:
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
@@ -333,7 +377,10 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         if cluster_mode(runtime, pending) == "sync":
             _run_sync(pending, store.url, batch, report)
         else:
-            _run_dask(pending, store.url, batch, report, get_client(runtime))
+            client = get_client(runtime)
+            if runtime.get("scheduler_address"):
+                check_store_reachable(client, store)
+            _run_dask(pending, store.url, batch, report, client)
     batch.wall_s = time.perf_counter() - t0
     return batch
 

@@ -87,11 +87,19 @@ class ArtifactStore:
         import fsspec
 
         root = str(root)
-        self.url = root
         self.fs, path = fsspec.core.url_to_fs(root)
         self.local = self.fs.protocol in ("file", ("file", "local")) or "file" in np.atleast_1d(self.fs.protocol)
         self.root = os.path.abspath(path) if self.local else path.rstrip("/")
+        # The URL handed to worker processes: a local path made absolute, since a worker resolves a
+        # relative one in its own working directory (a remote scheduler's workers run elsewhere).
+        self.url = self.root if self.local else root
+        self.created = not self.fs.exists(self.root)
         self.fs.makedirs(self.root, exist_ok=True)
+
+    def remove_if_unused(self) -> None:
+        """Remove the store's folder again when this object created it and nothing was written."""
+        if self.created and self.local and os.path.isdir(self.root) and not os.listdir(self.root):
+            os.rmdir(self.root)
 
     # -- paths ---------------------------------------------------------------------------------
     def _join(self, *parts: str) -> str:

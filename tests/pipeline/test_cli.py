@@ -199,3 +199,67 @@ def test_local_cluster_leaves_port_8787_alone(tmp_path, cli):
         proc = cli("input=in/", "runtime.until=prep", "runtime.cluster=local", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "8787" not in proc.stderr and "Warning" not in proc.stderr, proc.stderr
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line_and_leaves_no_store(tmp_path, cli):
+    (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
+    proc = cli("line.png", f"runtime.scheduler_address=tcp://127.0.0.1:{_free_port()}",
+               "runtime.connect_timeout_s=2", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and "cannot reach the dask scheduler" in proc.stderr
+    assert not (tmp_path / "artifacts").exists()
+
+
+@pytest.mark.slow
+def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
+    """Workers started in another directory write to the driver's relative store; a store they cannot
+    reach (memory://, private to the driver) is refused before any work."""
+    import subprocess
+    import sys
+    import time
+
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    elsewhere = tmp_path / "worker-cwd"
+    elsewhere.mkdir()
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--no-dashboard"], cwd=elsewhere,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                                   "--no-dashboard"], cwd=elsewhere, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL))
+    try:
+        from distributed import Client
+
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with Client(addr, timeout=5) as c:
+                    if c.scheduler_info()["workers"]:
+                        break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, "dask scheduler/worker did not come up"
+            time.sleep(0.5)
+        (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
+        proc = cli("input=line.png", "runtime.until=field", f"runtime.scheduler_address={addr}", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        assert len(list((tmp_path / "artifacts" / "field").glob("*/*"))) == 1
+        assert not (elsewhere / "artifacts").exists()
+        refused = cli("input=line.png", "runtime.until=field", "store.path=memory://polyvec-test",
+                      f"runtime.scheduler_address={addr}", cwd=tmp_path)
+        assert refused.returncode == 2, refused.stderr
+        assert "is not reachable from 1 of 1 dask workers" in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+            p.wait(20)
