@@ -66,7 +66,7 @@ def library_versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {}
-    for name in ("numpy", "scipy", "torch", "scikit-image", "networkx", "pulp", "zarr", "numba"):
+    for name in ("numpy", "scipy", "torch", "scikit-image", "pulp", "zarr", "numba"):
         try:
             out[name] = md.version(name)
         except md.PackageNotFoundError:
