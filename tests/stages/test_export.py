@@ -457,3 +457,24 @@ def test_bezier_flag_spelling():
     """`export.bezier=true` is the one spelling; the old nested `bezier: {enabled: ...}` is a clear error."""
     with pytest.raises(InputError, match=r"export.bezier must be true or false"):
         export.run(_cfg(bezier={"enabled": True, "tolerance": 0.5}), **_inputs([np.eye(2) * 9], [0]))
+
+
+def test_joining_is_near_linear_in_the_number_of_curves(monkeypatch):
+    """A chain of N curves meeting end to end at junctions: every join re-examines only the groups it
+    touches, so end directions are measured O(N) times, not O(N²) (dense scribbles took minutes)."""
+    calls = {"n": 0}
+    direction = export.end_direction
+
+    def counting(*a, **k):
+        calls["n"] += 1
+        return direction(*a, **k)
+
+    monkeypatch.setattr(export, "end_direction", counting)
+    n = 400
+    xs = np.arange(n + 1) * 4.0
+    curves = [{"id": k, "points": np.array([[xs[k], 0.0], [xs[k] + 2, 0.1 * (k % 2)], [xs[k + 1], 0.0]]),
+               "end_types": [3 if k else 1, 3 if k < n - 1 else 1], "end_keypoints": [k, k + 1], "parts": [k],
+               "width": 2.0} for k in range(n)]
+    out = export.join_continuations(curves, 35.0, 5.0, 10.0, 10.0)
+    assert len(out) == 1 and sorted(out[0]["parts"]) == list(range(n))
+    assert calls["n"] <= 6 * n, calls["n"]
