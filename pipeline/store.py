@@ -81,9 +81,12 @@ class ArtifactStore:
     ----------
     root : str or Path
         Local directory, or a URL such as ``memory://polyvec`` or ``s3://bucket/prefix``.
+    create : bool
+        Create the store when it does not exist; False (readers such as ``polyvec-inspect``) raises
+        FileNotFoundError instead.
     """
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, create: bool = True):
         import fsspec
 
         root = str(root)
@@ -94,6 +97,8 @@ class ArtifactStore:
         # relative one in its own working directory (a remote scheduler's workers run elsewhere).
         self.url = self.root if self.local else root
         self.created = not self.fs.exists(self.root)
+        if self.created and not create:
+            raise FileNotFoundError(f"no artifact store at {self.url}")
         self.fs.makedirs(self.root, exist_ok=True)
 
     def remove_if_unused(self) -> None:

@@ -263,3 +263,33 @@ def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
         for p in procs[::-1]:
             p.terminate()
             p.wait(20)
+
+
+def test_inspect_after_a_sweep(tmp_path, cli):
+    """polyvec-inspect: `show STAGE` alone picks the image's artifact, `list IMAGE` shows what differs
+    between a sweep's artifacts, `render --scale` holds for every stage, a missing store is not created."""
+    from PIL import Image
+
+    img = tmp_path / "line.png"
+    img.write_bytes(synthetic.line(size=40).png_bytes())
+    proc = cli("-m", f"input={img}", "field.beta=9,11", "runtime.until=field", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    shown = cli("show", "prep", cwd=tmp_path, module="pipeline.inspect")
+    assert shown.returncode == 0, shown.stderr
+    assert '"stage": "prep"' in shown.stdout
+    newest = cli("show", "field", cwd=tmp_path, module="pipeline.inspect")  # two of one image: the newest
+    assert newest.returncode == 0 and '"stage": "field"' in newest.stdout, newest.stderr
+    listed = cli("list", str(img), cwd=tmp_path, module="pipeline.inspect")
+    field_rows = [line for line in listed.stdout.splitlines() if "field" in line]
+    assert len(field_rows) == 2 and '"beta":9' in field_rows[0] + field_rows[1] \
+        and '"beta":11' in field_rows[0] + field_rows[1], listed.stdout
+    for stage in ("prep", "field"):
+        out = tmp_path / f"{stage}.png"
+        key = [] if stage == "prep" else ["--key", field_rows[0].split("│")[2].strip()]
+        r = cli("render", str(img), stage, *key, "--scale", "3", "-o", str(out), cwd=tmp_path,
+                module="pipeline.inspect")
+        assert r.returncode == 0, r.stderr
+        assert Image.open(out).size == (120, 120), stage
+    missing = cli("--store", str(tmp_path / "nonexistent"), "list", cwd=tmp_path, module="pipeline.inspect")
+    assert missing.returncode == 2 and "no artifact store" in missing.stderr
+    assert not (tmp_path / "nonexistent").exists()
