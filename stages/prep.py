@@ -15,7 +15,7 @@ Choices made on purpose
 * **Hole repair** uses all 8 neighbours (a background pixel with at least ``repair_neighbours`` ink
   neighbours becomes ink, ``repair_passes`` times). The reference loop skips the (−1,−1) and (+1,+1)
   offsets by accident (``i1 == j1``), which makes the rule depend on stroke direction; we do not
-  copy that quirk. 6 of 8 is the same 75 % share as the reference's 5 of 6.
+  copy that quirk. 6 of 8 (75 %) is close to the share of the reference's 5 of 6 (83 %).
   Repair is for pencil texture (pinholes of light grey inside a stroke); a pixel as light as paper
   (grey > ``repair_max_grey``, 0.85) is repaired only when all 8 neighbours are ink. Why: on clean
   drawings the plain rule filled the white slit inside narrow loops (an eye drawn as a thin
@@ -83,7 +83,10 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:
     except UnidentifiedImageError:
         raise InputError("not an image (unrecognised file format)") from None
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
-        raise InputError(f"image too large (more than prep.max_pixels={max_pixels} pixels)") from None
+        # Pillow's own limit (Image.MAX_IMAGE_PIXELS, ≈ 89.5 Mpx) fires in Image.open, before our
+        # max_pixels check: name the limit that applied, since raising max_pixels does not lift it.
+        raise InputError(f"image too large for the decoder (Pillow's decompression-bomb limit of "
+                         f"{Image.MAX_IMAGE_PIXELS} pixels, whatever prep.max_pixels says)") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"corrupt or truncated image ({exc})") from None
     mode = img.mode
