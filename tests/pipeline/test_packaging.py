@@ -77,3 +77,17 @@ def test_project_metadata_has_no_deprecation_warning():
         warnings.simplefilter("always")
         config.apply_configuration(Distribution(), str(ROOT / "pyproject.toml"))
     assert [str(w.message).splitlines()[0] for w in caught] == []
+
+
+def test_docs_say_what_the_code_does():
+    """Statements issue 18 found false: the heads' activation, the CG solver, 5 of 6 as 75 %, stages reading files."""
+    import inspect
+
+    import stages
+    from stages import field, prep
+    from stages.keypoints import network
+
+    assert "sigmoid)" not in inspect.getdoc(network.KeypointNet) and "torch.sigmoid" not in inspect.getsource(network)
+    assert "(scipy) with a Jacobi" not in field.__doc__ and "_conjugate_gradient" in field.__doc__
+    assert "same 75 % share" not in prep.__doc__
+    assert "never read files" not in stages.__doc__
