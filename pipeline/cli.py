@@ -395,6 +395,10 @@ class ExitCode:
             print(f"{self.prog}: error: {exc}", file=sys.stderr)
             sys.exit(2)
         sys.argv[1:] = args
+        # Hydra's sweeper always saves multirun.yaml into the sweep folder, which is the working
+        # directory (jobs do not chdir): the user's folder keeps nothing it did not have.
+        stray = Path("multirun.yaml")
+        had_stray = stray.exists()
         try:
             app()
         except KeyboardInterrupt:
@@ -403,6 +407,8 @@ class ExitCode:
             from pipeline.runner import close_client
 
             close_client()
+            if not had_stray and stray.exists():
+                stray.unlink()
         sys.exit(self.code)
 
     def interrupted(self) -> None:

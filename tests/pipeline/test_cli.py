@@ -53,6 +53,7 @@ def test_multirun_shares_one_store(tmp_path, cli):
     assert proc.returncode == 0, proc.stderr
     assert len(list((tmp_path / "artifacts" / "prep").glob("*/*"))) == 1
     assert len(list((tmp_path / "artifacts" / "field").glob("*/*"))) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["artifacts", "line.png"], "the sweep left files behind"
 
 
 def test_inspect_list_show_render(tmp_path, cli):
