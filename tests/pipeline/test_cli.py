@@ -294,3 +294,36 @@ def test_inspect_after_a_sweep(tmp_path, cli):
     missing = cli("--store", str(tmp_path / "nonexistent"), "list", cwd=tmp_path, module="pipeline.inspect")
     assert missing.returncode == 2 and "no artifact store" in missing.stderr
     assert not (tmp_path / "nonexistent").exists()
+
+
+def _readme_block(heading: str) -> list[str]:
+    """The commands of the first ```bash block after a README heading (comments dropped)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    block = text[text.index(heading):].split("```bash\n", 1)[1].split("```", 1)[0]
+    return [line.split("  #")[0].strip() for line in block.splitlines() if line.strip()]
+
+
+@pytest.mark.slow
+def test_readme_running_commands(tmp_path, cli):
+    """Every command of the README's "Running" block works as written (stopped after prep, in-process)."""
+    import shlex
+
+    from PIL import Image
+
+    (tmp_path / "scans" / "clean").mkdir(parents=True)
+    (tmp_path / "my drawings (2024)").mkdir()
+    line = synthetic.line(size=40).png_bytes()
+    for p in ("drawing.png", "scans/clean/cat.png", "my drawings (2024)/cat.png"):
+        (tmp_path / p).write_bytes(line)
+    Image.fromarray((synthetic.vee(size=48).grey * 255).astype("uint8")).save(tmp_path / "scans" / "vee.jpg")
+    commands = _readme_block("## Running")
+    assert len(commands) >= 5
+    for command in commands:
+        args = shlex.split(command)
+        assert args[0] == "polyvec"
+        extra = ["runtime.cluster=sync"] + ([] if any(a.startswith("runtime.until=") for a in args)
+                                            else ["runtime.until=prep"])
+        proc = cli(*args[1:], *extra, cwd=tmp_path)
+        assert proc.returncode == 0, (command, proc.stderr)
