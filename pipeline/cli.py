@@ -232,6 +232,8 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     from pipeline.registry import active_stages
 
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
+    if kernels_uncompiled(stages):
+        console.print("polyvec: compiling kernels, first run only (about a minute)", highlight=False)
     PROGRESS.start(len(images), stages[-1] if stages else None)
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         try:
@@ -242,6 +244,29 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     write_outputs(batch, store, out_dir, {str(image): rel for image, rel in named})
     print_summary(batch, console, bool(cfg.runtime.get("debug", False)))
     return batch
+
+
+# Modules whose numba kernels are compiled on first use and cached on disk (``@njit(cache=True)``).
+_KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"), "flow": ("stages/flow.py",)}
+
+
+def kernels_uncompiled(stages: list[str]) -> bool:
+    """Whether a stage to run has numba kernels with no on-disk cache yet (the first run compiles them).
+
+    numba keeps its cache index (``<module>.<function>-<line>.py<ver>.nbi``) in the module's
+    ``__pycache__``, or below ``NUMBA_CACHE_DIR`` when that is set.
+    """
+    root = Path(__file__).resolve().parents[1]
+    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
+    for stage in stages:
+        for module in _KERNEL_MODULES.get(stage, ()):
+            src = root / module
+            where = Path(cache_dir) if cache_dir else src.parent / "__pycache__"
+            pattern = f"{src.stem}.*.nbi"
+            found = where.rglob(pattern) if cache_dir else where.glob(pattern)
+            if next(iter(found), None) is None:
+                return True
+    return False
 
 
 class _Progress:

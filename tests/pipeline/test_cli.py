@@ -327,3 +327,20 @@ def test_readme_running_commands(tmp_path, cli):
                                             else ["runtime.until=prep"])
         proc = cli(*args[1:], *extra, cwd=tmp_path)
         assert proc.returncode == 0, (command, proc.stderr)
+
+
+@pytest.mark.slow
+def test_first_run_says_it_compiles_kernels(tmp_path):
+    """With no numba cache the run says why it is slow; once cached, it says nothing."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    runs = [subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.until=graph",
+                            "runtime.cluster=sync", f"store.path={tmp_path / f'store{k}'}"], cwd=tmp_path,
+                           capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr + runs[1].stderr
+    assert "compiling kernels, first run only" in runs[0].stderr
+    assert "compiling kernels" not in runs[1].stderr
