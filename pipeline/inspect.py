@@ -30,18 +30,58 @@ def artifacts_of(store: ArtifactStore, image: str) -> list[tuple[str, str, dict]
 
 
 def resolve(store: ArtifactStore, stage: str, key_prefix: str | None, image: str | None) -> str:
-    """Full key of an artifact from a key prefix, or the newest one of ``image`` for ``stage``."""
+    """Full key of an artifact: from a key prefix, the newest one of ``image``, or the only image's.
+
+    With neither a key prefix nor an image, the stage's artifact is taken when the store holds
+    artifacts of that stage for one image only (the newest of them).
+    """
+    if key_prefix and image is None and Path(key_prefix).is_file():
+        key_prefix, image = None, key_prefix  # `show graph drawing.png`: an image, not a key
     if image is not None and not key_prefix:
         keys = [k for s, k, _ in artifacts_of(store, image) if s == stage]
         if not keys:
             raise LookupError(f"no {stage} artifact for {image} in {store.url}")
         return keys[-1]
-    keys = [k for s, k, _ in store.iter_manifests() if s == stage and k.startswith(key_prefix or "")]
-    if not keys:
-        raise LookupError(f"no {stage} artifact with key {key_prefix}* in {store.url}")
-    if len(keys) > 1:
-        raise LookupError(f"key prefix {key_prefix} is ambiguous: {', '.join(k[:12] for k in keys)}")
-    return keys[0]
+    found = [(k, m) for s, k, m in store.iter_manifests() if s == stage and k.startswith(key_prefix or "")]
+    if not found:
+        raise LookupError(f"no {stage} artifact with key {key_prefix or ''}* in {store.url}")
+    if not key_prefix:
+        images = {m.get("image") for _, m in found}
+        if len(images) > 1:
+            raise LookupError(f"the store holds {stage} artifacts of {len(images)} images: give --image IMAGE "
+                              "or a key prefix")
+        return sorted(found, key=lambda t: t[1].get("written_at", 0))[-1][0]
+    if len(found) > 1:
+        raise LookupError(f"key prefix {key_prefix} is ambiguous: {', '.join(k[:12] for k, _ in found)}")
+    return found[0][0]
+
+
+def _flatten(cfg, prefix: str = "") -> dict:
+    if isinstance(cfg, dict):
+        out = {}
+        for k, v in cfg.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: cfg}
+
+
+def config_differences(configs: list[dict]) -> list[dict]:
+    """Per config, only the (dotted) settings that differ among ``configs``.
+
+    Parameters
+    ----------
+    configs : list of dict
+        Configs of artifacts of one stage (e.g. the flow artifacts of a λ sweep).
+
+    Returns
+    -------
+    list of dict
+        Same order; empty dicts when all configs are equal (or there is only one).
+    """
+    flat = [_flatten(c or {}) for c in configs]
+    keys = sorted(set().union(*flat)) if flat else []
+    differ = [k for k in keys if len({json.dumps(f.get(k), sort_keys=True) for f in flat}) > 1]
+    return [{k: f.get(k) for k in differ} for f in flat]
 
 
 def _short_config(cfg: dict, width: int = 60) -> str:
@@ -73,10 +113,20 @@ def cmd_list(store: ArtifactStore, image: str | None, console) -> int:
     table = Table(title=f"{image}: {len(rows)} artifact(s) in {store.url}")
     for col in ("stage", "key", "version", "size", "seconds", "peak MB", "config"):
         table.add_column(col)
-    for stage, key, m in rows:
+    # A stage with several artifacts (a sweep) shows what differs between them, not the common prefix.
+    by_stage: dict[str, list[int]] = {}
+    for n, (stage, _, _) in enumerate(rows):
+        by_stage.setdefault(stage, []).append(n)
+    shown = {}
+    for stage, idx in by_stage.items():
+        if len(idx) > 1:
+            for n, diff in zip(idx, config_differences([rows[n][2].get("config", {}) for n in idx])):
+                shown[n] = diff
+    for n, (stage, key, m) in enumerate(rows):
         size = store.size_bytes(stage, key)
         table.add_row(stage, key[:12], str(m.get("version")), f"{size / 1024:.0f} KB",
-                      f"{m.get('duration_s', 0):.2f}", str(m.get("peak_rss_mb", "")), _short_config(m.get("config", {})))
+                      f"{m.get('duration_s', 0):.2f}", str(m.get("peak_rss_mb", "")),
+                      _short_config(shown.get(n, m.get("config", {}))))
     console.print(table)
     return 0
 
@@ -92,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("image", nargs="?")
     p = sub.add_parser("show", help="print one artifact's manifest and data summary")
     p.add_argument("stage", choices=[s.name for s in STAGES])
-    p.add_argument("key", nargs="?", help="key or key prefix")
+    p.add_argument("key", nargs="?", help="key or key prefix (default: the artifact of the store's only image)")
     p.add_argument("--image", help="take the newest artifact of this image")
     p = sub.add_parser("render", help="draw an artifact over its drawing into a PNG")
     p.add_argument("image", help="the input image (its newest artifact is drawn) ")
@@ -105,7 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--out", help="HTML path (default: <image stem>.html)")
     args = parser.parse_args(argv)
     console = Console()
-    store = ArtifactStore(args.store)
+    try:
+        store = ArtifactStore(args.store, create=False)  # inspecting never creates a store
+    except FileNotFoundError as exc:
+        print(f"polyvec-inspect: error: {exc}", file=sys.stderr)
+        return 2
     try:
         if args.cmd == "list":
             return cmd_list(store, args.image, console)

@@ -69,15 +69,28 @@ def _import(module: str) -> ModuleType:
     return importlib.import_module(module)
 
 
-def is_implemented(spec: StageSpec) -> bool:
-    """Whether the stage's module exists and exposes ``run`` and ``STAGE_VERSION``."""
+class StageUnavailable(RuntimeError):
+    """A stage's module is missing or lacks ``run``/``STAGE_VERSION``: the install is broken."""
+
+
+def check_stage(spec: StageSpec) -> None:
+    """Import a stage's module and check it exposes ``run`` and ``STAGE_VERSION``.
+
+    A stage is never silently left out of the DAG: that would let a broken install write artifacts
+    and SVGs of a different pipeline.
+
+    Raises
+    ------
+    StageUnavailable
+        The module cannot be imported or lacks ``run`` or ``STAGE_VERSION``.
+    """
     try:
         mod = spec.load()
-    except ModuleNotFoundError as exc:
-        if exc.name and spec.module.startswith(exc.name):
-            return False
-        raise
-    return hasattr(mod, "run") and hasattr(mod, "STAGE_VERSION")
+    except ImportError as exc:
+        raise StageUnavailable(f"stage {spec.name}: cannot import {spec.module} ({exc}); reinstall polyvec") from None
+    missing = [a for a in ("run", "STAGE_VERSION") if not hasattr(mod, a)]
+    if missing:
+        raise StageUnavailable(f"stage {spec.name}: {spec.module} has no {' or '.join(missing)}")
 
 
 def ancestors(name: str) -> set[str]:
@@ -95,12 +108,17 @@ def ancestors(name: str) -> set[str]:
 def active_stages(until: str | None = None) -> list[StageSpec]:
     """Stages to run, in topological order.
 
-    A stage runs when it is implemented, all its inputs run, and it is not downstream of ``until``.
+    Every stage up to ``until`` runs (a stage that cannot be loaded is an error, never skipped).
 
     Parameters
     ----------
     until : str, optional
         Last stage wanted: only it and its ancestors run.
+
+    Raises
+    ------
+    StageUnavailable
+        A wanted stage's module is missing or incomplete.
     """
     wanted = set(BY_NAME)
     if until:
@@ -108,9 +126,8 @@ def active_stages(until: str | None = None) -> list[StageSpec]:
             raise ValueError(f"unknown stage {until!r}; stages: {', '.join(BY_NAME)}")
         wanted = {until} | ancestors(until)
     out: list[StageSpec] = []
-    have: set[str] = set()
     for spec in STAGES:
-        if spec.name in wanted and all(i in have for i in spec.inputs) and is_implemented(spec):
+        if spec.name in wanted:
+            check_stage(spec)
             out.append(spec)
-            have.add(spec.name)
     return out

@@ -72,7 +72,8 @@ def render_artifact(store: ArtifactStore, stage: str, key: str, scale: int = 2) 
     stage, key : str
         The artifact.
     scale : int
-        Upscaling of the drawing, so thin curves stay visible.
+        Upscaling of the drawing, so thin curves stay visible (every stage's picture is
+        ``scale`` × the drawing's size).
     """
     manifest = store.manifest(stage, key)
     prep_key = key if stage == "prep" else _find_input(store, manifest, "prep")
@@ -86,19 +87,20 @@ def render_artifact(store: ArtifactStore, stage: str, key: str, scale: int = 2) 
     if stage == "field":
         from stages.field import render_field
 
-        return render_field(grey, art["roots"], prep["mask"])
+        return render_field(grey, art["roots"], prep["mask"], scale=scale)
     if stage == "keypoints":
         from stages.keypoints import render_keypoints
 
-        return render_keypoints(grey, art["heatmaps"], art["points"], art["types"])
+        rgb = render_keypoints(grey, art["heatmaps"], art["points"], art["types"])
+        return np.repeat(np.repeat(rgb, scale, 0), scale, 1)
     if stage == "graph":
         from stages.graph import render_graph
 
-        return render_graph(grey, art.arrays)
+        return render_graph(grey, art.arrays, scale=scale)
     if stage == "topology":
         from stages.topology import render_topology
 
-        return render_topology(grey, art)
+        return render_topology(grey, art, scale=scale)
     rgb = grey_to_rgb(grey, scale)
     return draw_polylines(rgb, _curves(store, stage, key, manifest), scale)
 

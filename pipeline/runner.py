@@ -11,8 +11,10 @@ from __future__ import annotations
 import json
 import os
 import resource
+import signal
 import socket
 import sys
+import threading
 import time
 import traceback
 from collections import OrderedDict
@@ -38,6 +40,7 @@ class Task:
     key: str
     inputs: dict[str, str]
     config: dict
+    source: str = ""  # the image as an absolute path: a worker may run in another directory
 
 
 @dataclass
@@ -128,7 +131,8 @@ def plan(images: Iterable[str | Path], cfg: Any, stages: list[StageSpec]) -> lis
         for s in stages:
             inputs = {"image": image_key} if not s.inputs else {i: keys[i] for i in s.inputs}
             keys[s.name] = artifact_key(s.name, s.version, configs[s.name], inputs)
-            tasks.append(Task(image, image_key, s.name, s.version, keys[s.name], inputs, configs[s.name]))
+            tasks.append(Task(image, image_key, s.name, s.version, keys[s.name], inputs, configs[s.name],
+                              str(Path(image).absolute())))
         out.append(tasks)
     return out
 
@@ -205,12 +209,15 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
     try:
         spec = BY_NAME[task.stage]
         module = spec.load()
+        source = Path(task.source or task.image)
         if task.stage == "prep":
             try:
-                data = Path(task.image).read_bytes()
+                data = source.read_bytes()
             except IsADirectoryError:
                 raise InputError("is a directory, not an image") from None
             except OSError as exc:
+                if source.is_symlink() and not source.exists():
+                    raise InputError(f"broken symbolic link (to {os.readlink(source)})") from None
                 raise InputError(f"cannot read file ({exc.strerror or exc})") from None
             kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
         else:
@@ -220,7 +227,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
         manifest = {
             "stage": task.stage, "version": task.version, "key": task.key, "config": task.config,
             "inputs": task.inputs, "image": task.image_key, "image_name": Path(task.image).name,
-            "image_path": str(Path(task.image).resolve()), "duration_s": round(duration, 4),
+            "image_path": str(source.resolve()), "duration_s": round(duration, 4),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
             "host": socket.gethostname(), "pid": os.getpid(), "libraries": library_versions(),
             "python": sys.version.split()[0],
@@ -241,6 +248,44 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
 
 
 # -- schedulers --------------------------------------------------------------------------------
+class ClusterError(RuntimeError):
+    """The dask scheduler cannot be reached, or its workers cannot reach the store (before any work)."""
+
+
+def check_store_reachable(client, store: ArtifactStore) -> None:
+    """Refuse a store the cluster's workers cannot see: a marker written here must exist for each worker.
+
+    Raises
+    ------
+    ClusterError
+        A worker does not see the marker (a local path on another machine, a ``memory://`` store).
+    """
+    import uuid
+
+    marker = f".reach-{uuid.uuid4().hex}"
+    with store.fs.open(store._join(marker), "wb") as f:
+        f.write(b"polyvec")
+    try:
+        seen = client.run(_sees_marker, store.url, marker)
+    finally:
+        store.fs.rm(store._join(marker))
+    blind = sorted(w for w, ok in seen.items() if not ok)
+    if blind:
+        raise ClusterError(f"store {store.url} is not reachable from {len(blind)} of {len(seen)} dask workers "
+                           f"(e.g. {blind[0]}): put store.path on a shared file system or an fsspec URL")
+
+
+def _sees_marker(url: str, marker: str) -> bool:
+    import fsspec
+
+    try:
+        fs, root = fsspec.core.url_to_fs(url)
+        return bool(fs.exists(os.path.join(root, marker) if fs.protocol in ("file", ("file", "local"))
+                              else f"{root.rstrip('/')}/{marker}"))
+    except Exception:  # noqa: BLE001 - a worker that cannot even open the URL does not see it
+        return False
+
+
 _CLIENT: Any = None
 _CLIENT_SPEC: tuple | None = None
 
@@ -259,11 +304,26 @@ def get_client(runtime: dict):
         return _CLIENT
     close_client()
     if address:
-        client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+        try:
+            client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"cannot reach the dask scheduler at {address} ({type(exc).__name__})") from None
     else:
-        cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
-                               dashboard_address=None, memory_limit=runtime.get("memory_limit", "auto"),
-                               env=dict(THREAD_ENV), silence_logs=50)
+        # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
+        # another dask runs on the machine.
+        # The worker processes are started with Ctrl-C ignored (an ignored SIGINT survives exec, and
+        # Python then installs no KeyboardInterrupt handler): the terminal sends Ctrl-C to the whole
+        # process group, and each worker would print its own tracebacks; the driver reports the
+        # interrupt once and shuts them down.
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:
+            cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", memory_limit=runtime.get("memory_limit", "auto"),
+                                   env=dict(THREAD_ENV), silence_logs=50)
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
         client = Client(cluster)
     _CLIENT, _CLIENT_SPEC = client, spec
     return client
@@ -330,7 +390,10 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         if cluster_mode(runtime, pending) == "sync":
             _run_sync(pending, store.url, batch, report)
         else:
-            _run_dask(pending, store.url, batch, report, get_client(runtime))
+            client = get_client(runtime)
+            if runtime.get("scheduler_address"):
+                check_store_reachable(client, store)
+            _run_dask(pending, store.url, batch, report, client)
     batch.wall_s = time.perf_counter() - t0
     return batch
 
@@ -389,23 +452,43 @@ def _run_dask(pending, store_url, batch, report, client) -> None:
 
 
 # -- outputs -----------------------------------------------------------------------------------
-def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Path) -> dict[str, list[str]]:
-    """Write ``<stem>.svg`` and ``<stem>.json`` of every image whose export artifact exists."""
+def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Path,
+                  names: dict[str, str | Path] | None = None) -> dict[str, list[str]]:
+    """Write ``<name>.svg``, ``<name>.json`` (and ``<name>.bezier.svg``) of every exported image.
+
+    Parameters
+    ----------
+    batch : BatchResult
+    store : ArtifactStore
+    output_dir : path
+    names : dict, optional
+        Image → output path relative to ``output_dir`` without suffix (the CLI mirrors the input
+        tree); by default the image's stem. A name is a function of its image alone, never of which
+        other images failed.
+
+    Returns
+    -------
+    dict
+        Image → files written.
+
+    Raises
+    ------
+    ValueError
+        When two images of the batch have the same name.
+    """
     output_dir = Path(output_dir)
+    names = {image: Path(names[image]) if names and image in names else Path(Path(image).stem)
+             for image in batch.results}
+    if len(set(names.values())) != len(names):
+        raise ValueError("two images of the batch have the same output name")
     written: dict[str, list[str]] = {}
-    used: set[str] = set()
     for image, per in batch.results.items():
         r = per.get("export")
         if r is None or r.status not in ("computed", "cached"):
             continue
         art = load_artifact(store, "export", r.key)
-        stem = Path(image).stem
-        name, n = stem, 1
-        while name in used:
-            n += 1
-            name = f"{stem}-{n}"
-        used.add(name)
-        output_dir.mkdir(parents=True, exist_ok=True)
+        name = str(names[image])
+        (output_dir / name).parent.mkdir(parents=True, exist_ok=True)
         files = []
         svg = output_dir / f"{name}.svg"
         _atomic_write(svg, art.data["svg"])

@@ -66,7 +66,7 @@ def library_versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {}
-    for name in ("numpy", "scipy", "torch", "scikit-image", "networkx", "pulp", "zarr", "numba"):
+    for name in ("numpy", "scipy", "torch", "scikit-image", "pulp", "zarr", "numba"):
         try:
             out[name] = md.version(name)
         except md.PackageNotFoundError:
@@ -81,17 +81,30 @@ class ArtifactStore:
     ----------
     root : str or Path
         Local directory, or a URL such as ``memory://polyvec`` or ``s3://bucket/prefix``.
+    create : bool
+        Create the store when it does not exist; False (readers such as ``polyvec-inspect``) raises
+        FileNotFoundError instead.
     """
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, create: bool = True):
         import fsspec
 
         root = str(root)
-        self.url = root
         self.fs, path = fsspec.core.url_to_fs(root)
         self.local = self.fs.protocol in ("file", ("file", "local")) or "file" in np.atleast_1d(self.fs.protocol)
         self.root = os.path.abspath(path) if self.local else path.rstrip("/")
+        # The URL handed to worker processes: a local path made absolute, since a worker resolves a
+        # relative one in its own working directory (a remote scheduler's workers run elsewhere).
+        self.url = self.root if self.local else root
+        self.created = not self.fs.exists(self.root)
+        if self.created and not create:
+            raise FileNotFoundError(f"no artifact store at {self.url}")
         self.fs.makedirs(self.root, exist_ok=True)
+
+    def remove_if_unused(self) -> None:
+        """Remove the store's folder again when this object created it and nothing was written."""
+        if self.created and self.local and os.path.isdir(self.root) and not os.listdir(self.root):
+            os.rmdir(self.root)
 
     # -- paths ---------------------------------------------------------------------------------
     def _join(self, *parts: str) -> str:

@@ -1,6 +1,8 @@
 """The algorithms of polyvec, one module (or subpackage) per stage.
 
-Stages are pure functions of arrays: they never read files, configs or stores. Each stage module
+Stages are functions of arrays: they never read configs or the artifact store, and the engine hands
+them their inputs. The files they read are their own shipped data (the keypoint weights and type
+classifier in ``stages/keypoints/weights/``, or a checkpoint named by ``keypoints.weights``). Each stage module
 exposes ``STAGE_VERSION`` (bump when results change) and ``run(cfg, **inputs) -> Artifact`` where
 ``cfg`` is a plain ``dict`` (the stage's own Hydra config section) and every input is the
 :class:`~stages.artifact.Artifact` of an upstream stage, passed by that stage's name.

@@ -12,8 +12,8 @@ Output (data of the artifact; the engine writes the files):
   ``widths``) when ``widths_from_graph`` is set;
 * ``curves`` — ``{"id", "points", "end_types", "end_keypoints", "parts", "width"}`` per curve, in
   selection order (joined curves last);
-* ``bezier_svg`` (when ``bezier.enabled``) — the same curves as piecewise cubic Béziers fitted within
-  ``bezier.tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
+* ``bezier_svg`` (when ``bezier``) — the same curves as piecewise cubic Béziers fitted within
+  ``bezier_tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
   least-squares control points for fixed end tangents, Newton re-parametrisation, split at the point
   of largest error).  The fit keeps the curve's ends exactly, and its pieces join with a common
   tangent (only keypoints are corners, and they are the curves' ends).
@@ -110,7 +110,7 @@ import numpy as np
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 
-STAGE_VERSION = "3"
+STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,7 @@ class ExportParams:
     precision: int
     bezier: bool
     bezier_tolerance: float
+    min_length_px: float
     join: bool
     join_max_turn_deg: float
     join_tangent_px: float
@@ -148,8 +149,9 @@ class ExportParams:
         """Build from the config dict; every key must be present."""
         try:
             p = cls(stroke_width=float(cfg["stroke_width"]), widths_from_graph=bool(cfg["widths_from_graph"]),
-                    precision=int(cfg["precision"]), bezier=bool(cfg["bezier"]["enabled"]),
-                    bezier_tolerance=float(cfg["bezier"]["tolerance"]), join=bool(cfg["join"]["enabled"]),
+                    precision=int(cfg["precision"]), bezier=_flag(cfg["bezier"], "export.bezier"),
+                    bezier_tolerance=float(cfg["bezier_tolerance"]),
+                    min_length_px=float(cfg["min_length_px"]), join=bool(cfg["join"]["enabled"]),
                     join_max_turn_deg=float(cfg["join"]["max_turn_deg"]),
                     join_tangent_px=float(cfg["join"]["tangent_px"]),
                     join_margin_deg=float(cfg["join"]["margin_deg"]),
@@ -171,10 +173,17 @@ class ExportParams:
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
-            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier.tolerance > 0")
+            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier_tolerance > 0")
         if not 0 <= p.join_max_turn_deg <= 180 or p.join_tangent_px <= 0:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
         return p
+
+
+def _flag(value, name: str) -> bool:
+    """A true/false config value; anything else (``export.bezier.enabled``, the old spelling) is an error."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise InputError(f"{name} must be true or false (got {value!r}; write {name}=true)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -222,7 +231,15 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         The curves after joining (same dict layout); ends meet where their keypoint is the same
         (junctions) or, for synthetic ends, where their points coincide within 1e-6 px.
     """
-    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+    import heapq
+
+    # Curves by a running index: a joined curve gets the next one, so index order is the order of
+    # the curve list (survivors in place, joined curves last). Only the groups of ends that a join
+    # touches are re-examined (the joint and the joined curve's two far ends), and the next join is
+    # the best pair of all groups, taken from a heap: near-linear in the number of curves, where
+    # rebuilding every group after each join was quadratic (511 s for a 400-line scribble).
+    alive = {n: dict(c, points=np.asarray(c["points"], np.float64)) for n, c in enumerate(curves)}
+    counter = len(alive)
 
     def key(c: dict, e: int):
         t, k = c["end_types"][e], c["end_keypoints"][e]
@@ -233,43 +250,84 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         p = c["points"][0 if e == 0 else -1]
         return ("p", int(round(p[0] * 1e6)), int(round(p[1] * 1e6)))
 
-    while True:
-        groups: dict = {}
-        for i, c in enumerate(curves):
-            for e in (0, 1):
-                kk = key(c, e)
-                if kk is not None:
-                    groups.setdefault(kk, []).append((i, e))
+    groups: dict = {}
+    direction: dict[tuple[int, int], np.ndarray] = {}
+
+    def add_end(n: int, e: int):
+        kk = key(alive[n], e)
+        if kk is not None:
+            groups.setdefault(kk, []).append((n, e))
+            direction[(n, e)] = end_direction(alive[n]["points"], e == 0, tangent_px)
+        return kk
+
+    for n in list(alive):
+        for e in (0, 1):
+            add_end(n, e)
+
+    def group_best(ends: list):
+        """The pair of ends at one joint that continue each other best, or None."""
         best = None
-        for ends in groups.values():
-            if len(ends) < 2:
-                continue
-            dirs = np.array([end_direction(curves[i]["points"], e == 0, tangent_px) for i, e in ends])
-            turn = np.degrees(np.arccos(np.clip(-(dirs @ dirs.T), -1.0, 1.0)))   # 0 = straight on
-            for a in range(len(ends)):
-                for b in range(a + 1, len(ends)):
-                    if ends[a][0] == ends[b][0]:
-                        continue                                    # never close a curve on itself
-                    t = turn[a, b]
-                    # Ends overlapping a or b (a duplicate on the same branch) are not other branches.
-                    others = [c for c in range(len(ends)) if c not in (a, b)
-                              and min(180 - turn[a, c], 180 - turn[b, c]) > same_branch_deg]
-                    # Unambiguous: no third end continues either of the two almost as well (a Y).
-                    if t <= max_turn_deg and all(min(turn[a, c], turn[b, c]) >= t + margin_deg for c in others) \
-                            and (best is None or t < best[0]):
-                        best = (t, ends[a], ends[b])
-        if best is None:
-            return curves
+        if len(ends) < 2:
+            return None
+        dirs = np.array([direction[x] for x in ends])
+        turn = np.degrees(np.arccos(np.clip(-(dirs @ dirs.T), -1.0, 1.0)))   # 0 = straight on
+        for a in range(len(ends)):
+            for b in range(a + 1, len(ends)):
+                if ends[a][0] == ends[b][0]:
+                    continue                                    # never close a curve on itself
+                t = turn[a, b]
+                # Ends overlapping a or b (a duplicate on the same branch) are not other branches.
+                others = [c for c in range(len(ends)) if c not in (a, b)
+                          and min(180 - turn[a, c], 180 - turn[b, c]) > same_branch_deg]
+                # Unambiguous: no third end continues either of the two almost as well (a Y).
+                if t <= max_turn_deg and all(min(turn[a, c], turn[b, c]) >= t + margin_deg for c in others) \
+                        and (best is None or t < best[0]):
+                    best = (t, ends[a], ends[b])
+        return best
+
+    heap: list = []
+    version: dict = {}
+
+    def push(kk) -> None:
+        ends = groups.get(kk)
+        version[kk] = version.get(kk, 0) + 1
+        if not ends:
+            groups.pop(kk, None)
+            return
+        ends.sort()
+        best = group_best(ends)
+        if best is not None:
+            # Ties go to the group whose first end comes first, as in a scan of the curve list.
+            heapq.heappush(heap, (best[0], ends[0], version[kk], kk, best))
+
+    for kk in list(groups):
+        push(kk)
+    while heap:
+        _, _, ver, kk, best = heapq.heappop(heap)
+        if version.get(kk) != ver:
+            continue                                            # stale: the group changed since
         (i, ei), (j, ej) = best[1], best[2]
-        a, b = curves[i], curves[j]
+        a, b = alive.pop(i), alive.pop(j)
+        touched = set()
+        for n, c in ((i, a), (j, b)):
+            for e in (0, 1):
+                g = key(c, e)
+                if g is not None:
+                    groups[g] = [x for x in groups[g] if x != (n, e)]
+                    direction.pop((n, e), None)
+                    touched.add(g)
         pa = a["points"] if ei == 1 else a["points"][::-1]          # a runs into the joint
         pb = b["points"] if ej == 0 else b["points"][::-1]          # b runs out of it
         ta = [a["end_types"][1 - ei], b["end_types"][1 - ej]]
         ka = [a["end_keypoints"][1 - ei], b["end_keypoints"][1 - ej]]
-        joined = {**a, "points": np.concatenate([pa, pb[1:]]), "end_types": ta, "end_keypoints": ka,
-                  "parts": list(a["parts"]) + list(b["parts"]),
-                  "width": _mean_width(a, b)}
-        curves = [c for k, c in enumerate(curves) if k not in (i, j)] + [joined]
+        alive[counter] = {**a, "points": np.concatenate([pa, pb[1:]]), "end_types": ta, "end_keypoints": ka,
+                          "parts": list(a["parts"]) + list(b["parts"]), "width": _mean_width(a, b)}
+        for e in (0, 1):
+            touched.add(add_end(counter, e))
+        counter += 1
+        for g in touched - {None}:
+            push(g)
+    return [alive[n] for n in sorted(alive)]
 
 
 def _mean_width(a: dict, b: dict):
@@ -858,6 +916,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = extend_overshoots(curves, np.asarray(mask, bool), params.join_tangent_px, params.overshoot_min_px,
                                    params.overshoot_min_widths, params.overshoot_max_px,
                                    params.overshoot_max_widths, params.overshoot_clearance)
+    # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
+    # one point: `M x y L x y`), and has no tangent for the Bézier fit.
+    curves = [c for c in curves if _length(c["points"]) >= params.min_length_px]
     for c in curves:
         pts = c["points"]
         c["points"] = pts.tolist()

@@ -24,7 +24,7 @@ Steps (in the order of :func:`compute_field`):
    are in the band, one-sided ±1 when only one is, nothing otherwise) and ``s`` the *smart weight*,
    the mean of ``1 − w`` over the 4-neighbours (1 on the image border).  Normal equations
    ``[M_align + α M_orth + β (L ⊕ L)] X = r``, ``L = Σ Dᵀ diag(s) D``, solved by conjugate gradients
-   (scipy) with a Jacobi preconditioner.
+   (hand-written, :func:`_conjugate_gradient`; not scipy's ``cg``) with a Jacobi preconditioner.
 4. **Singularity loop.**  A 2×2 pixel cell is singular when walking round it the root pairing between
    neighbours (:func:`root_matching`) swaps an odd number of times; a pixel is singular when one of
    its (fully in-band) cells is.  Singular pixels get ``w = 0`` (which also raises the smart weights

@@ -52,7 +52,7 @@ _PACKAGED_NETWORKS = {"packaged": PACKAGED_WEIGHTS, "packaged_procedural": PACKA
 
 def _file_hash(path: Path) -> str:
     if not path.is_file():
-        return "untrained"
+        return "missing"  # load_model refuses to run without it
     return hashlib.sha256(path.read_bytes()).hexdigest()[:10]
 
 
@@ -76,7 +76,12 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     model : KeypointNet
         In eval mode, float32, on the CPU.
     name : str
-        ``<file name>@<sha256 prefix>`` (``untrained`` when no weights file exists).
+        ``<file name>@<sha256 prefix>``.
+
+    Raises
+    ------
+    InputError
+        The weights file (packaged or given) does not exist or is not a checkpoint.
     """
     import torch
 
@@ -87,10 +92,11 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     if key in _MODELS:
         return _MODELS[key]
     if not path.is_file():
-        if path not in _PACKAGED_NETWORKS.values():
-            raise InputError(f"keypoints.weights: no such file {path}")
-        torch.manual_seed(0)  # the default architecture, random weights: results are meaningless
-        model, name = KeypointNet(NetConfig()), "untrained"
+        # Never a randomly initialised network: its keypoints would look like results.
+        if path in _PACKAGED_NETWORKS.values():
+            raise InputError(f"keypoints.weights: the packaged weights file {path} is missing; reinstall polyvec "
+                             "or give a checkpoint from polyvec-train")
+        raise InputError(f"keypoints.weights: no such file {path}")
     else:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         # keypoints.pt (exported) keeps "state_dict"; a training checkpoint (last.pt) keeps "model".

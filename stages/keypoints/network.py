@@ -150,7 +150,7 @@ class KeypointNet(nn.Module):
 
     Input: (B, 1, H, W) contrast-normalised ink (1 = ink, 0 = paper), H and W multiples of
     ``2**depth``. Output of :meth:`forward`: ``(final, intermediate)`` where ``final`` is (B, 4, H, W)
-    = [H1 detection (tanh), H2 endpoint, H3 junction, H4 corner (sigmoid)] and ``intermediate`` is the
+    = [H1 detection, H2 endpoint, H3 junction, H4 corner], all four ending in ``tanh`` and ``intermediate`` is the
     list of H1 predictions at the coarser levels, coarsest first (0.25×, 0.5× for depth 3).
     """
 

@@ -53,6 +53,7 @@ def test_multirun_shares_one_store(tmp_path, cli):
     assert proc.returncode == 0, proc.stderr
     assert len(list((tmp_path / "artifacts" / "prep").glob("*/*"))) == 1
     assert len(list((tmp_path / "artifacts" / "field").glob("*/*"))) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["artifacts", "line.png"], "the sweep left files behind"
 
 
 def test_inspect_list_show_render(tmp_path, cli):
@@ -74,3 +75,281 @@ def test_inspect_list_show_render(tmp_path, cli):
         assert Image.open(out).size[0] >= 48
     missing = cli("show", "graph", "ffff", cwd=tmp_path, module="pipeline.inspect")
     assert missing.returncode == 2 and "no graph artifact" in missing.stderr
+
+
+def test_sparse_drawing_runs_through_prep(tmp_path, cli):
+    """One 2-px line on a 600×600 page (0.3 % ink) is vectorised, not refused as blank."""
+    import numpy as np
+    from PIL import Image
+
+    g = np.full((600, 600), 255, np.uint8)
+    g[300:302, 60:540] = 0
+    Image.fromarray(g, "L").save(tmp_path / "one-line.png")
+    proc = cli("input=one-line.png", "runtime.until=prep", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "blank" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_export_bezier_true_as_the_readme_spells_it(tmp_path, cli):
+    """`export.bezier=true` (README) writes the Bézier SVG beside the polyline one."""
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    proc = cli("input=vee.png", "export.bezier=true", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert (tmp_path / "out" / "vee.svg").exists() and (tmp_path / "out" / "vee.bezier.svg").exists()
+
+
+def test_help_describes_polyvec(tmp_path, cli):
+    """`polyvec --help` describes the tool, its stages and examples (not Hydra's generic help)."""
+    proc = cli("--help", cwd=tmp_path)
+    assert proc.returncode == 0
+    assert "powered by Hydra" not in proc.stdout and "bench" not in proc.stdout.split("See also")[0]
+    assert "Vectorise" in proc.stdout and "Examples" in proc.stdout
+    for stage in ("prep", "keypoints", "field", "graph", "topology", "flow", "select", "export"):
+        assert stage in proc.stdout
+    assert not list(tmp_path.iterdir())
+
+
+def test_plain_paths_with_odd_characters(tmp_path, cli):
+    """Paths with ü ( , ✓ work as positional arguments and as input=, beside overrides."""
+    folder = tmp_path / "my drawings (2024)"
+    folder.mkdir()
+    (folder / "cät,✓.png").write_bytes(synthetic.line(size=40).png_bytes())
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    for args in (("scans/", "my drawings (2024)/cät,✓.png"), ("input=my drawings (2024)/cät,✓.png",)):
+        proc = cli(*args, "runtime.until=prep", "runtime.cluster=sync", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+    assert len(list((tmp_path / "artifacts" / "prep").glob("*/*"))) == 2
+
+
+@pytest.mark.parametrize("args, message", [
+    (("export.foo=1",), "Could not override 'export.foo'"),
+    (("export.bezier.enabled=true",), "export.bezier.enabled"),
+    (("output=a(b)",), "cannot read the arguments"),
+    (("does/not/exist.png",), "input not found: does/not/exist.png"),
+])
+def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
+    proc = cli(*args, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr, proc.stderr
+    assert proc.stderr.startswith("polyvec: error: ")
+    assert not (tmp_path / "artifacts").exists()
+
+
+@pytest.mark.slow
+def test_output_tree_mirrors_the_input_tree(tmp_path, cli):
+    """clean/kitten and rough/kitten keep their own names; a failed image takes no other image's name."""
+    src = tmp_path / "scans"
+    for sub in ("clean", "rough"):
+        (src / sub).mkdir(parents=True)
+        (src / sub / "kitten.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    (src / "clean" / "a-bad.png").write_bytes(b"not an image")
+    (src / "clean" / "gone.png").symlink_to(tmp_path / "nowhere.png")
+    proc = cli("scans/", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 1
+    assert "a-bad.png: prep: not an image" in proc.stderr
+    assert "gone.png: prep: broken symbolic link" in proc.stderr
+    out = tmp_path / "out"
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*.svg")) == ["clean/kitten.svg", "rough/kitten.svg"]
+    # the summary names every file written
+    assert "wrote out/clean/kitten.svg, out/clean/kitten.json" in proc.stderr.replace("\n", "")
+
+
+@pytest.mark.slow
+def test_ctrl_c_prints_one_line(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during a dask batch."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for k in range(4):
+        (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob("artifacts/prep/*/*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
+    assert "Traceback" not in out
+
+
+def test_local_cluster_leaves_port_8787_alone(tmp_path, cli):
+    """Another dask (here: a socket) holding the dashboard's default port 8787 causes no warning."""
+    import socket
+
+    (tmp_path / "in").mkdir()
+    for k in range(2):
+        (tmp_path / "in" / f"l{k}.png").write_bytes(synthetic.line(size=40 + k).png_bytes())
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", 8787))
+            sock.listen()
+        except OSError:
+            pass  # already taken by someone else: the test holds all the same
+        proc = cli("input=in/", "runtime.until=prep", "runtime.cluster=local", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "8787" not in proc.stderr and "Warning" not in proc.stderr, proc.stderr
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line_and_leaves_no_store(tmp_path, cli):
+    (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
+    proc = cli("line.png", f"runtime.scheduler_address=tcp://127.0.0.1:{_free_port()}",
+               "runtime.connect_timeout_s=2", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and "cannot reach the dask scheduler" in proc.stderr
+    assert not (tmp_path / "artifacts").exists()
+
+
+@pytest.mark.slow
+def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
+    """Workers started in another directory write to the driver's relative store; a store they cannot
+    reach (memory://, private to the driver) is refused before any work."""
+    import subprocess
+    import sys
+    import time
+
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    elsewhere = tmp_path / "worker-cwd"
+    elsewhere.mkdir()
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--no-dashboard"], cwd=elsewhere,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                                   "--no-dashboard"], cwd=elsewhere, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL))
+    try:
+        from distributed import Client
+
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with Client(addr, timeout=5) as c:
+                    if c.scheduler_info()["workers"]:
+                        break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, "dask scheduler/worker did not come up"
+            time.sleep(0.5)
+        (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
+        proc = cli("input=line.png", "runtime.until=field", f"runtime.scheduler_address={addr}", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        assert len(list((tmp_path / "artifacts" / "field").glob("*/*"))) == 1
+        assert not (elsewhere / "artifacts").exists()
+        refused = cli("input=line.png", "runtime.until=field", "store.path=memory://polyvec-test",
+                      f"runtime.scheduler_address={addr}", cwd=tmp_path)
+        assert refused.returncode == 2, refused.stderr
+        assert "is not reachable from 1 of 1 dask workers" in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+            p.wait(20)
+
+
+def test_inspect_after_a_sweep(tmp_path, cli):
+    """polyvec-inspect: `show STAGE` alone picks the image's artifact, `list IMAGE` shows what differs
+    between a sweep's artifacts, `render --scale` holds for every stage, a missing store is not created."""
+    from PIL import Image
+
+    img = tmp_path / "line.png"
+    img.write_bytes(synthetic.line(size=40).png_bytes())
+    proc = cli("-m", f"input={img}", "field.beta=9,11", "runtime.until=field", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    shown = cli("show", "prep", cwd=tmp_path, module="pipeline.inspect")
+    assert shown.returncode == 0, shown.stderr
+    assert '"stage": "prep"' in shown.stdout
+    newest = cli("show", "field", cwd=tmp_path, module="pipeline.inspect")  # two of one image: the newest
+    assert newest.returncode == 0 and '"stage": "field"' in newest.stdout, newest.stderr
+    listed = cli("list", str(img), cwd=tmp_path, module="pipeline.inspect")
+    field_rows = [line for line in listed.stdout.splitlines() if "field" in line]
+    assert len(field_rows) == 2 and '"beta":9' in field_rows[0] + field_rows[1] \
+        and '"beta":11' in field_rows[0] + field_rows[1], listed.stdout
+    for stage in ("prep", "field"):
+        out = tmp_path / f"{stage}.png"
+        key = [] if stage == "prep" else ["--key", field_rows[0].split("│")[2].strip()]
+        r = cli("render", str(img), stage, *key, "--scale", "3", "-o", str(out), cwd=tmp_path,
+                module="pipeline.inspect")
+        assert r.returncode == 0, r.stderr
+        assert Image.open(out).size == (120, 120), stage
+    missing = cli("--store", str(tmp_path / "nonexistent"), "list", cwd=tmp_path, module="pipeline.inspect")
+    assert missing.returncode == 2 and "no artifact store" in missing.stderr
+    assert not (tmp_path / "nonexistent").exists()
+
+
+def _readme_block(heading: str) -> list[str]:
+    """The commands of the first ```bash block after a README heading (comments dropped)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    block = text[text.index(heading):].split("```bash\n", 1)[1].split("```", 1)[0]
+    return [line.split("  #")[0].strip() for line in block.splitlines() if line.strip()]
+
+
+@pytest.mark.slow
+def test_readme_running_commands(tmp_path, cli):
+    """Every command of the README's "Running" block works as written (stopped after prep, in-process)."""
+    import shlex
+
+    from PIL import Image
+
+    (tmp_path / "scans" / "clean").mkdir(parents=True)
+    (tmp_path / "my drawings (2024)").mkdir()
+    line = synthetic.line(size=40).png_bytes()
+    for p in ("drawing.png", "scans/clean/cat.png", "my drawings (2024)/cat.png"):
+        (tmp_path / p).write_bytes(line)
+    Image.fromarray((synthetic.vee(size=48).grey * 255).astype("uint8")).save(tmp_path / "scans" / "vee.jpg")
+    commands = _readme_block("## Running")
+    assert len(commands) >= 5
+    for command in commands:
+        args = shlex.split(command)
+        assert args[0] == "polyvec"
+        extra = ["runtime.cluster=sync"] + ([] if any(a.startswith("runtime.until=") for a in args)
+                                            else ["runtime.until=prep"])
+        proc = cli(*args[1:], *extra, cwd=tmp_path)
+        assert proc.returncode == 0, (command, proc.stderr)
+
+
+@pytest.mark.slow
+def test_first_run_says_it_compiles_kernels(tmp_path):
+    """With no numba cache the run says why it is slow; once cached, it says nothing."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    runs = [subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.until=graph",
+                            "runtime.cluster=sync", f"store.path={tmp_path / f'store{k}'}"], cwd=tmp_path,
+                           capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr + runs[1].stderr
+    assert "compiling kernels, first run only" in runs[0].stderr
+    assert "compiling kernels" not in runs[1].stderr
+
+
+def test_keypoints_edits_is_read_as_the_edits_stage_file():
+    """The issue's spelling ``keypoints.edits=FILE`` reaches the edits stage, not the detector's config."""
+    from pipeline.cli import split_arguments
+
+    args, paths = split_arguments(["cat.png", "keypoints.edits=cat.keypoints.json", "flow.lam=0.5"])
+    assert paths == ["cat.png"]
+    assert args == ["keypoint_edits.file=cat.keypoints.json", "flow.lam=0.5"]

@@ -165,3 +165,15 @@ def test_artifact_memo_reuses_and_protects_loaded_artifacts(tmp_path):
     runner._remember("big", "b", big)  # larger than the byte budget: not kept
     assert ("big", "b") not in runner._MEMO
     runner._MEMO.clear()
+
+
+def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
+    """A broken install (a stage module gone) is an error, never a shorter DAG."""
+    import pipeline.registry as registry
+
+    broken = tuple(registry.StageSpec(s.name, "stages.no_such_module", s.inputs, s.persists) if s.name == "graph"
+                   else s for s in registry.STAGES)
+    monkeypatch.setattr(registry, "STAGES", broken)
+    with pytest.raises(registry.StageUnavailable, match="stage graph: cannot import stages.no_such_module"):
+        registry.active_stages()
+    assert [s.name for s in registry.active_stages("field")] == ["prep", "field"]

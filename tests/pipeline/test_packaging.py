@@ -15,3 +15,79 @@ def test_package_data_covers_the_shipped_weights():
     assert {"keypoints.pt", "keypoints_procedural.pt", "type_classifier.npz"} <= set(shipped)
     missing = [n for n in shipped if not any(fnmatch.fnmatch(n, pat) for pat in patterns)]
     assert missing == [], f"not in [tool.setuptools.package-data]: {missing}"
+
+
+# Import name → distribution name, for the runtime dependencies whose names differ.
+_DIST_OF = {"PIL": "pillow", "skimage": "scikit-image", "hydra": "hydra-core", "yaml": "pyyaml",
+            "distributed": "dask", "sklearn": "scikit-learn"}
+
+
+def _declared() -> dict[str, str]:
+    import re
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    return {re.match(r"[A-Za-z0-9_.\-]+", d).group(0).lower(): d for d in deps}
+
+
+def _imported_modules() -> set[str]:
+    """Top-level modules that the installed code (pipeline/, stages/, conf/) imports."""
+    import ast
+    import sys
+
+    names: set[str] = set()
+    for folder in ("pipeline", "stages", "conf"):
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    names |= {a.name.split(".")[0] for a in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names.add(node.module.split(".")[0])
+    return {n for n in names if n not in sys.stdlib_module_names and n not in ("pipeline", "stages", "conf")}
+
+
+def test_runtime_dependencies_are_what_the_code_imports():
+    """Every third-party import is declared, and every declared dependency is imported."""
+    declared = _declared()
+    used = {_DIST_OF.get(m, m).lower() for m in _imported_modules()}
+    assert sorted(used - set(declared)) == [], "imported but not declared in pyproject.toml"
+    assert sorted(set(declared) - used) == [], "declared in pyproject.toml but never imported"
+
+
+def test_pulp_lower_bound_has_add_variable():
+    """stages/select.py builds its problem with LpProblem.add_variable, new in PuLP 3.3.1 (its HISTORY)."""
+    import re
+
+    import pulp
+
+    lower = re.search(r">=\s*([\d.]+)", _declared()["pulp"]).group(1)
+    assert tuple(int(x) for x in lower.split(".")) >= (3, 3, 1)
+    assert hasattr(pulp.LpProblem, "add_variable")
+
+
+def test_project_metadata_has_no_deprecation_warning():
+    """`project.license` is an SPDX string (a TOML table is deprecated by setuptools)."""
+    import warnings
+
+    import pytest
+
+    config = pytest.importorskip("setuptools.config.pyprojecttoml")
+    from setuptools.dist import Distribution
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        config.apply_configuration(Distribution(), str(ROOT / "pyproject.toml"))
+    assert [str(w.message).splitlines()[0] for w in caught] == []
+
+
+def test_docs_say_what_the_code_does():
+    """Statements issue 18 found false: the heads' activation, the CG solver, 5 of 6 as 75 %, stages reading files."""
+    import inspect
+
+    import stages
+    from stages import field, prep
+    from stages.keypoints import network
+
+    assert "sigmoid)" not in inspect.getdoc(network.KeypointNet) and "torch.sigmoid" not in inspect.getsource(network)
+    assert "(scipy) with a Jacobi" not in field.__doc__ and "_conjugate_gradient" in field.__doc__
+    assert "same 75 % share" not in prep.__doc__
+    assert "never read files" not in stages.__doc__

@@ -23,10 +23,7 @@ NS = {"svg": "http://www.w3.org/2000/svg"}
 def _cfg(**over):
     cfg = json.loads(json.dumps(CFG))
     for k, v in over.items():
-        if k.startswith("bezier_"):
-            cfg["bezier"][k[7:]] = v
-        else:
-            cfg[k] = v
+        cfg[k] = v
     return cfg
 
 
@@ -118,7 +115,7 @@ def test_bezier_fit_stays_within_tolerance_and_keeps_the_ends():
 def test_bezier_svg_is_written_when_enabled():
     t = np.linspace(0, np.pi, 100)
     curve = np.stack([40 + 20 * np.cos(t), 30 + 20 * np.sin(t)], 1)
-    art = export.run(_cfg(bezier_enabled=True), **_inputs([curve], [0]))
+    art = export.run(_cfg(bezier=True), **_inputs([curve], [0]))
     root = ET.fromstring(art.data["bezier_svg"])
     d = root.find(".//svg:path", NS).get("d")
     assert " C " in d and root.get("viewBox") == "0 0 80 64"
@@ -443,3 +440,41 @@ def test_long_links_free_tips_and_triangles_are_not_contracted():
     # Tiny curves among tiny curves (a filled eye with many keypoints) would shrink to a point.
     a_short = dict(a, points=_line((28, 38), (30, 40)))
     assert len(export.collapse_short_links([a_short, b, link], 3.0, 1.5)) == 3
+
+
+def test_curves_shorter_than_a_pixel_are_not_exported():
+    """A selected path that flowed onto one point (`M x y L x y`) reaches no SVG, and the Bézier fit copes."""
+    curves = [np.array([[245.74, 232.44], [245.74, 232.44]]), np.array([[5.0, 5.0], [5.3, 5.2], [5.5, 5.4]]),
+              np.array([[10.0, 10.0], [30.0, 12.0], [50.0, 30.0]])]
+    art = export.run(_cfg(bezier=True), **_inputs(curves, [0, 1, 2], shape=(300, 300)))
+    for doc in (art.data["svg"], art.data["bezier_svg"]):
+        paths = ET.fromstring(doc).findall(".//svg:path", NS)
+        assert [p.get("id") for p in paths] == ["curve-102"]
+    assert [c["id"] for c in art.data["curves"]] == [102]
+
+
+def test_bezier_flag_spelling():
+    """`export.bezier=true` is the one spelling; the old nested `bezier: {enabled: ...}` is a clear error."""
+    with pytest.raises(InputError, match=r"export.bezier must be true or false"):
+        export.run(_cfg(bezier={"enabled": True, "tolerance": 0.5}), **_inputs([np.eye(2) * 9], [0]))
+
+
+def test_joining_is_near_linear_in_the_number_of_curves(monkeypatch):
+    """A chain of N curves meeting end to end at junctions: every join re-examines only the groups it
+    touches, so end directions are measured O(N) times, not O(N²) (dense scribbles took minutes)."""
+    calls = {"n": 0}
+    direction = export.end_direction
+
+    def counting(*a, **k):
+        calls["n"] += 1
+        return direction(*a, **k)
+
+    monkeypatch.setattr(export, "end_direction", counting)
+    n = 400
+    xs = np.arange(n + 1) * 4.0
+    curves = [{"id": k, "points": np.array([[xs[k], 0.0], [xs[k] + 2, 0.1 * (k % 2)], [xs[k + 1], 0.0]]),
+               "end_types": [3 if k else 1, 3 if k < n - 1 else 1], "end_keypoints": [k, k + 1], "parts": [k],
+               "width": 2.0} for k in range(n)]
+    out = export.join_continuations(curves, 35.0, 5.0, 10.0, 10.0)
+    assert len(out) == 1 and sorted(out[0]["parts"]) == list(range(n))
+    assert calls["n"] <= 6 * n, calls["n"]

@@ -399,3 +399,13 @@ def test_eval_keypoints_cli_scores_a_folder(tmp_path):
         assert s["cases"] == 1 and 0.0 <= s["f1_matched_pooled"] <= 1.0
         assert ("keypoints_procedural.pt@" in s["weights"]) == procedural
     assert main([str(tmp_path / "missing")]) == 2
+
+
+def test_missing_packaged_weights_are_an_error_not_a_random_network(tmp_path, monkeypatch):
+    """A deleted weights file must stop the stage: a randomly initialised network gives plausible nonsense."""
+    import stages.keypoints as kp
+
+    monkeypatch.setitem(kp._PACKAGED_NETWORKS, "packaged", tmp_path / "keypoints.pt")
+    monkeypatch.setattr(kp, "_MODELS", {})
+    with pytest.raises(InputError, match="packaged weights file .* is missing"):
+        load_model("packaged")

@@ -126,3 +126,28 @@ def test_huge_image_is_refused_before_decoding():
     data = _encode(Image.fromarray(np.full((400, 500), 255, np.uint8), "L"), "PNG")
     with pytest.raises(InputError, match="too large"):
         prep.run(dict(CFG, max_pixels=100_000), data)
+
+
+def _sparse_page(size: int, rows: list[int]) -> bytes:
+    """Black 2-px horizontal lines on a white page: well below 0.5 % ink."""
+    g = np.full((size, size), 255, np.uint8)
+    for r in rows:
+        g[r:r + 2, size // 10: size - size // 10] = 0
+    return _encode(Image.fromarray(g, "L"), "PNG")
+
+
+@pytest.mark.parametrize("size, rows", [(600, [300]), (1000, [200, 500, 800])])
+def test_sparse_drawing_is_not_blank(size, rows):
+    """A drawing of one line is a drawing: the blank check must not fire before the sparse-ink fallback."""
+    art = prep.run(CFG, _sparse_page(size, rows))
+    assert art.arrays["mask"].sum() == pytest.approx(len(rows) * 2 * (size - 2 * (size // 10)), rel=0.05)
+    assert art.arrays["grey"].min() == 0.0 and art.arrays["grey"].max() == 1.0
+
+
+def test_pillow_decompression_limit_names_the_limit_that_applies(monkeypatch):
+    """Over Pillow's own pixel limit the message names it, not prep.max_pixels (raising that would not help)."""
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    data = _encode(Image.fromarray(np.full((100, 100), 255, np.uint8), "L"), "PNG")  # 10000 > 2 × 1000
+    with pytest.raises(InputError, match="Pillow's decompression-bomb limit of 1000 pixels") as info:
+        prep.run(dict(CFG, max_pixels=10**9), data)
+    assert "\n" not in str(info.value)
