@@ -40,6 +40,25 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
+def wait_for_dask_worker(address: str, timeout_s: float = 60.0) -> None:
+    """Wait until the dask scheduler at ``address`` has a worker; fail the test after ``timeout_s``."""
+    import time
+
+    from distributed import Client
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with Client(address, timeout=5) as c:
+                if c.scheduler_info()["workers"]:
+                    return
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            pytest.fail("dask scheduler/worker did not come up")
+        time.sleep(0.5)
+
+
 @pytest.fixture
 def cli():
     """The :func:`run_cli` helper."""

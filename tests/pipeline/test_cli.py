@@ -225,7 +225,6 @@ def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
     reach (memory://, private to the driver) is refused before any work."""
     import subprocess
     import sys
-    import time
 
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
@@ -238,18 +237,9 @@ def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
                                    "--no-dashboard"], cwd=elsewhere, stdout=subprocess.DEVNULL,
                                   stderr=subprocess.DEVNULL))
     try:
-        from distributed import Client
+        from conftest import wait_for_dask_worker
 
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with Client(addr, timeout=5) as c:
-                    if c.scheduler_info()["workers"]:
-                        break
-            except OSError:
-                pass
-            assert time.monotonic() < deadline, "dask scheduler/worker did not come up"
-            time.sleep(0.5)
+        wait_for_dask_worker(addr)
         (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
         proc = cli("input=line.png", "runtime.until=field", f"runtime.scheduler_address={addr}", cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr

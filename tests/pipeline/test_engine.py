@@ -6,7 +6,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -90,19 +89,9 @@ def test_existing_scheduler_and_worker_processes(tmp_path, images, compose_cfg):
     try:
         cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field",
                           f"runtime.scheduler_address={addr}")
-        deadline = time.time() + 60
-        from distributed import Client
+        from conftest import wait_for_dask_worker
 
-        while True:  # wait for the worker to register
-            try:
-                with Client(addr, timeout=5) as c:
-                    if c.scheduler_info()["workers"]:
-                        break
-            except OSError:
-                pass
-            if time.time() > deadline:
-                pytest.fail("dask scheduler/worker did not come up")
-            time.sleep(0.5)
+        wait_for_dask_worker(addr)
         batch = run_batch(images, cfg)
         assert not batch.failed_images
         assert _statuses(batch)["field"] == ["computed", "computed"]
