@@ -199,6 +199,9 @@ def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.
     return pts, types
 
 
+_KP_NAMES = {1: "end", 3: "junc", 5: "corner"}  # keypoint codes in the column names
+
+
 def score_keypoints(pred: tuple[np.ndarray, np.ndarray], gt: dict[int, np.ndarray], height: int,
                     kcfg: dict) -> dict:
     """Keypoint metrics (metrics.md §3) via :mod:`stages.evaluate.keypoints`.
@@ -211,7 +214,7 @@ def score_keypoints(pred: tuple[np.ndarray, np.ndarray], gt: dict[int, np.ndarra
     """
     from stages.evaluate.keypoints import f1_authors, f1_authors_per_class, match_keypoints
 
-    names = {1: "end", 3: "junc", 5: "corner"}
+    names = _KP_NAMES
     gt_pts = np.concatenate([gt.get(t, np.zeros((0, 2))) for t in names]).reshape(-1, 2)
     gt_types = np.concatenate([np.full(len(gt.get(t, ())), t) for t in names]).astype(np.int64)
     pts, types = pred
@@ -238,7 +241,7 @@ def pooled_keypoints(rows: list[dict]) -> list[dict]:
     """
     from stages.evaluate.keypoints import TYPES, MatchResult
 
-    names = {1: "end", 3: "junc", 5: "corner"}
+    names = _KP_NAMES
     scored = [r for r in rows if "kp_tp" in r]
     groups = [("all", scored)] + [(g, [r for r in scored if r.get("group") == g])
                                   for g in sorted({r.get("group") for r in scored if r.get("group")})]

@@ -161,10 +161,9 @@ def validation_set(cfg: dict, part: str = "generated") -> list[tuple[np.ndarray,
     if part == "generated":
         samples = [generate(rng, gcfg, rules) for _ in range(int(v["count"]))]
     else:
-        vcfg = cfg["train"].get("vector") or {}
-        pool = vector_pool(vcfg, "valid") if int(v.get("vector_count", 0)) > 0 else {}
-        samples = [s for _ in range(int(v.get("vector_count", 0)))
-                   if (s := draw_vector(rng, pool, vcfg, gcfg, rules)) is not None]
+        vcfg, n = cfg["train"].get("vector") or {}, int(v.get("vector_count", 0))
+        pool = vector_pool(vcfg, "valid") if n > 0 else {}
+        samples = [s for _ in range(n) if (s := draw_vector(rng, pool, vcfg, gcfg, rules)) is not None]
     out = []
     for s in samples:
         x, _, band = prepare_sample(s, cfg)
@@ -650,6 +649,16 @@ def category_split(files: list[str], holdout: int, seed: int) -> tuple[list[str]
     return sorted(set(files) - set(valid)), valid
 
 
+def vector_split(vcfg: dict) -> tuple[list[str], list[str]]:
+    """(training, held-out) ndjson files of ``train.vector`` (:func:`category_split` of ``files``)."""
+    return category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)), int(vcfg.get("split_seed", 0)))
+
+
+def _canvas(vcfg: dict, source: str) -> list[int]:
+    """[min, max] canvas side for a drawing of ``source`` ("ndjson" or "stroke3")."""
+    return vcfg.get("size", [384, 512]) if source == "ndjson" else vcfg.get("stroke3_size", [160, 320])
+
+
 def vector_pool(vcfg: dict, part: str = "train") -> dict[str, list[list[np.ndarray]]]:
     """The human-stroke drawings of ``vcfg`` (``train.vector``) for one part of the split.
 
@@ -668,8 +677,7 @@ def vector_pool(vcfg: dict, part: str = "train") -> dict[str, list[list[np.ndarr
     """
     if part not in ("train", "valid"):
         raise ValueError(f"part must be 'train' or 'valid', not {part!r}")
-    train_files, valid_files = category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)),
-                                              int(vcfg.get("split_seed", 0)))
+    train_files, valid_files = vector_split(vcfg)
     pool: dict[str, list] = {"ndjson": [], "stroke3": []}
 
     def keep(strokes):
@@ -701,9 +709,9 @@ def draw_vector(rng: np.random.Generator, pool: dict, vcfg: dict, gcfg: Generato
     nd, s3 = pool.get("ndjson") or [], pool.get("stroke3") or []
     if not nd and not s3:
         return None
-    if s3 and (not nd or rng.random() < float(vcfg.get("stroke3_prob", 0.0))):
-        return render_vector(rng, s3[rng.integers(len(s3))], vcfg.get("stroke3_size", [160, 320]), gcfg, rules)
-    return render_vector(rng, nd[rng.integers(len(nd))], vcfg.get("size", [384, 512]), gcfg, rules)
+    source = "stroke3" if s3 and (not nd or rng.random() < float(vcfg.get("stroke3_prob", 0.0))) else "ndjson"
+    drawings = pool[source]
+    return render_vector(rng, drawings[rng.integers(len(drawings))], _canvas(vcfg, source), gcfg, rules)
 
 
 def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_range, gcfg: GeneratorConfig,
@@ -735,10 +743,10 @@ def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, 
                 return
             yield s
         return
-    for key, size in (("ndjson", vcfg.get("size", [384, 512])), ("stroke3", vcfg.get("stroke3_size", [160, 320]))):
-        for strokes in pool[key]:
+    for source in ("ndjson", "stroke3"):
+        for strokes in pool[source]:
             for _ in range(int(vcfg.get("renders", 1))):
-                yield render_vector(rng, strokes, size, gcfg, rules)
+                yield render_vector(rng, strokes, _canvas(vcfg, source), gcfg, rules)
 
 
 def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -855,8 +863,7 @@ def train_type_classifier(cfg: dict) -> dict:
     clf = fit_type_classifier(x, y, tc)
     # Class scores are the first three features: their argmax is the paper's typing.
     vcfg = cfg["train"].get("vector") or {}
-    vfiles = category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)),
-                            int(vcfg.get("split_seed", 0)))[0] + _vector_files(vcfg, "stroke3") if use_vector else []
+    vfiles = vector_split(vcfg)[0] + _vector_files(vcfg, "stroke3") if use_vector else []
     record = {"mode": "type_classifier", "keypoints": int(len(y)), "val_keypoints": int(len(vy)),
               "vector_files": [Path(f).name for f in vfiles],
               "class_counts": np.bincount(y, minlength=3).tolist(), "data_seconds": t_data,

@@ -62,7 +62,7 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     """
     from PIL import Image
 
-    from pipeline.train import _vector_files, category_split, read_quickdraw_ndjson, vector_pool
+    from pipeline.train import read_quickdraw_ndjson, vector_pool, vector_split
     from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, fit_strokes
     from stages.keypoints.labels import LabelRules
 
@@ -70,7 +70,7 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     vcfg = tc.get("vector") or {}
     gcfg = GeneratorConfig.from_dict(tc["generator"])
     rules = LabelRules.from_dict(tc["labels"])
-    _, valid = category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)), int(vcfg.get("split_seed", 0)))
+    _, valid = vector_split(vcfg)
     drawings: list[tuple[str, list[np.ndarray]]] = []
     for f in valid:
         kept = [d for d in read_quickdraw_ndjson(f) if any(len(s) >= 2 for s in d)]
