@@ -4,7 +4,7 @@ Usage::
 
     python -m pipeline.validation_cases OUT_DIR [--per-category 2] [--stroke3 24] [key=value …]
 
-The human-stroke drawings of the categories that :func:`pipeline.train.category_split` holds out of
+The human-stroke drawings of the categories that :func:`stages.keypoints.training.category_split` holds out of
 training (``train.vector.holdout`` of ``train.vector.files``), and optionally the first symbols of
 the stroke-3 files' ``valid`` split (Omniglot), are rendered on a 512×512 canvas in two styles —
 ``clean`` (dark anti-aliased ink) and ``pencil`` (the generator's grain, lighter ink) — at stroke
@@ -62,7 +62,8 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     """
     from PIL import Image
 
-    from pipeline.train import read_quickdraw_ndjson, vector_pool, vector_split
+    from stages.keypoints.generator import read_quickdraw_ndjson
+    from stages.keypoints.training import vector_pool, vector_split
     from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, fit_strokes
     from stages.keypoints.labels import LabelRules
 

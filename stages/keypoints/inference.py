@@ -6,7 +6,7 @@ Choices made on purpose
   divided by max(max, 0.2), then stretched so the 2nd–98th percentiles span [0, 1]. On sparse clean
   drawings both percentiles are paper (the authors' code then divides by zero); we keep the stretch
   range at least ``contrast_floor`` wide, which leaves such drawings nearly as they are. Training
-  applies the very same function (pipeline/train.py), so the network sees what it was trained on.
+  applies the very same function (stages/keypoints/training/), so the network sees what it was trained on.
 * **Padding** as the authors: zeros (paper) at the bottom and right up to a multiple of the network's
   stride, always 1..stride pixels (their ``8 - dim % 8``).
 * **Tiles**: drawings larger than ``tile_size`` run in overlapping tiles whose outputs are blended

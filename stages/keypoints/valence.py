@@ -14,7 +14,7 @@ or more → a junction), how wide the arcs are, and the angle between two branch
 that *ring profile* at five radii scaled by the local stroke width and feeds it, with the class-map
 values at the peak, to a small multilayer perceptron (:class:`TypeClassifier`, 44 → 32 → 3, about 1.5 k
 parameters). The perceptron is trained on the same procedural drawings as the network (never on
-realvec_dev), by ``python -m pipeline.train --type-classifier`` (:func:`pipeline.train.train_type_classifier`),
+realvec_dev), by ``python -m pipeline.train --type-classifier`` (:func:`stages.keypoints.training.train_type_classifier`),
 and shipped as ``weights/type_classifier.npz``. The stage option ``keypoints.typing`` chooses between it
 (``valence``, the default) and the paper's plain argmax (``argmax``); both are measured in the model card.
 

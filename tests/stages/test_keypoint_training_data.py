@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.train import category_split, compose_plain, train, vector_pool
+from pipeline.train import compose_plain
+from stages.keypoints.training import category_split, train, vector_pool
 from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, read_stroke3
 from stages.keypoints.labels import LabelRules
 

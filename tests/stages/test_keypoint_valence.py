@@ -123,7 +123,8 @@ def test_stage_rejects_unknown_typing_and_missing_classifier(tmp_path):
 
 
 def test_type_classifier_training_smoke(tmp_path):
-    from pipeline.train import compose_plain, train_type_classifier
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train_type_classifier
 
     torch.set_num_threads(1)
     ndjson = tmp_path / "doodles.ndjson"
@@ -154,7 +155,7 @@ def _write_ndjson(path, n):
 def test_vector_samples_skip_renders_and_labels(tmp_path):
     """Human-stroke training drawings: the first ``skip`` drawings never appear, each is styled
     ``renders`` times on a canvas within ``size``, and its keypoints come from the label rules."""
-    from pipeline.train import vector_samples
+    from stages.keypoints.training import vector_samples
     from stages.keypoints.generator import GeneratorConfig
     from stages.keypoints.labels import LabelRules
 
@@ -181,7 +182,8 @@ def test_detector_stream_mixes_human_strokes(tmp_path, monkeypatch):
     each of those gives ``vector_crops_per_image`` crops, and 0 keeps training procedural only."""
     import itertools
 
-    import pipeline.train as tr
+    import stages.keypoints.training.data as tr
+    from pipeline.train import compose_plain
 
     ndjson = tmp_path / "doodles.ndjson"
     _write_ndjson(ndjson, 3)
@@ -200,7 +202,7 @@ def test_detector_stream_mixes_human_strokes(tmp_path, monkeypatch):
     monkeypatch.setattr(tr, "generate", gen)
 
     def crops(prob, n):
-        cfg = tr.compose_plain(CONF, [f"train.vector.files=[{ndjson}]", "train.vector.skip=1",
+        cfg = compose_plain(CONF, [f"train.vector.files=[{ndjson}]", "train.vector.skip=1",
                                       "train.vector.holdout=0", "train.vector.stroke3=[]",
                                       "train.vector.size=[96,128]", f"train.vector_prob={prob}",
                                       "train.vector_crops_per_image=3", "train.crops_per_image=2"])

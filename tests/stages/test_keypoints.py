@@ -294,7 +294,8 @@ def test_authors_f1_and_matching():
 
 
 def test_training_smoke_loss_decreases(tmp_path):
-    from pipeline.train import compose_plain, train
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train
 
     cfg = compose_plain(CONF, [
         f"train.out_dir={tmp_path}", "train.steps=12", "train.batch_size=4", "train.num_workers=0",
@@ -333,7 +334,8 @@ def test_legacy_network_config_rebuilds_the_first_head():
 
 
 def test_class_branch_training_keeps_detection(tmp_path):
-    from pipeline.train import compose_plain, train, train_class_branch
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train, train_class_branch
 
     small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
              "train.network.bottleneck_blocks=1", "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]

@@ -1,0 +1,278 @@
+"""Training data of the keypoint network: generated and human-stroke drawings as the stage sees them.
+
+Procedural drawings come from :mod:`stages.keypoints.generator`; human strokes (``train.vector``:
+Quick, Draw! categories split by :func:`category_split`, Omniglot stroke-3 symbols) are restyled by
+the same generator at every draw. Both go through prep's contrast normalisation and narrow band
+and the network-input normalisation of inference, so the network sees what it is run on.
+"""
+
+from __future__ import annotations
+
+import glob
+from pathlib import Path
+
+import numpy as np
+import torch
+from skimage.measure import approximate_polygon
+
+from stages.keypoints.generator import (
+    GeneratorConfig,
+    drawing_from_strokes,
+    fit_strokes,
+    generate,
+    read_quickdraw_ndjson,
+    read_stroke3,
+)
+from stages.keypoints.inference import (
+    dilate_band,
+    network_input,
+)
+from stages.keypoints.labels import LabelRules
+from stages.keypoints.targets import (
+    gaussian_heatmaps,
+)
+from stages.prep import narrow_band, normalise_contrast
+
+# ------------------------------------------------------------------------------------------------
+# Data
+
+
+def prepare_sample(sample, cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Network input, targets and loss band of one generated drawing, as the stage would see it.
+
+    Parameters
+    ----------
+    sample : stages.keypoints.generator.Sample
+    cfg : dict
+        The composed config (``train``, ``keypoints``, ``prep`` sections).
+
+    Returns
+    -------
+    x : numpy.ndarray
+        float32 (H, W) network input (1 = ink).
+    target : numpy.ndarray
+        float32 (4, H, W) Gaussian heatmaps.
+    band : numpy.ndarray
+        float32 (H, W), 1 inside the dilated narrow band.
+    """
+    pc = cfg["prep"]
+    grey = sample.grey
+    try:
+        grey = normalise_contrast(grey.astype(np.float64), pc["contrast"]["low_percentile"],
+                                  pc["contrast"]["high_percentile"], pc["contrast"]["min_contrast"])
+    except Exception:  # blank drawing after styling: leave it as is
+        grey = grey.astype(np.float32)
+    mask = narrow_band(grey, pc["threshold"], pc["repair_passes"], pc["repair_neighbours"], pc["min_component_px"])
+    band = dilate_band(mask, int(cfg["train"]["band_dilation"])).astype(np.float32)
+    x = network_input(grey, float(cfg["keypoints"]["contrast_floor"]))
+    target = gaussian_heatmaps(grey.shape, sample.points, sample.types, float(cfg["train"]["sigma"]))
+    return x, target, band
+
+
+class DrawingStream(torch.utils.data.IterableDataset):
+    """Endless crops of training drawings; worker ``k`` draws from seed (seed, start, k).
+
+    A share ``train.vector_prob`` of the drawings are human strokes (:func:`vector_pool`, restyled
+    by :func:`render_vector` every time one is drawn); the rest are procedural.
+    """
+
+    def __init__(self, cfg: dict, crop: int, start: int):
+        self.cfg, self.crop, self.start = cfg, crop, start
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        wid = info.id if info is not None else 0
+        tc = self.cfg["train"]
+        rng = np.random.default_rng([int(tc["seed"]), self.start, wid])
+        gcfg = GeneratorConfig.from_dict(tc["generator"])
+        rules = LabelRules.from_dict(tc["labels"])
+        c = self.crop
+        kp_prob = float(tc["keypoint_crop_prob"])
+        vprob = float(tc.get("vector_prob") or 0.0)
+        vcfg = tc.get("vector") or {}
+        pool = vector_pool(vcfg, "train") if vprob > 0 else {}
+        while True:
+            sample = draw_vector(rng, pool, vcfg, gcfg, rules) if pool and rng.random() < vprob else None
+            if sample is not None:
+                per = int(tc["vector_crops_per_image"])
+            else:
+                sample = generate(rng, gcfg, rules)
+                per = int(tc["crops_per_image"])
+            x, t, b = prepare_sample(sample, self.cfg)
+            pts = sample.points
+            h, w = x.shape
+            ph, pw = max(c - h, 0), max(c - w, 0)
+            if ph or pw:
+                x = np.pad(x, ((0, ph), (0, pw)))
+                t = np.pad(t, ((0, 0), (0, ph), (0, pw)))
+                b = np.pad(b, ((0, ph), (0, pw)))
+                h, w = x.shape
+            for _ in range(per):
+                if len(pts) and rng.random() < kp_prob:
+                    # Centre-ish on a keypoint: positives are rare, and this is where learning is.
+                    px, py = pts[rng.integers(len(pts))]
+                    m = min(8, c // 4)
+                    i0 = int(np.clip(int(py) - rng.integers(m, c - m), 0, h - c))
+                    j0 = int(np.clip(int(px) - rng.integers(m, c - m), 0, w - c))
+                else:
+                    # Any crop with some ink.
+                    for _try in range(4):
+                        i0, j0 = rng.integers(0, h - c + 1), rng.integers(0, w - c + 1)
+                        if b[i0:i0 + c, j0:j0 + c].mean() > 0.01:
+                            break
+                yield (torch.from_numpy(np.ascontiguousarray(x[None, i0:i0 + c, j0:j0 + c])),
+                       torch.from_numpy(np.ascontiguousarray(t[:, i0:i0 + c, j0:j0 + c])),
+                       torch.from_numpy(np.ascontiguousarray(b[None, i0:i0 + c, j0:j0 + c])))
+
+
+def validation_set(cfg: dict, part: str = "generated") -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Fixed validation drawings: (x, band, points, types).
+
+    ``part="generated"``: ``val.count`` procedural drawings. ``part="vector"``: ``val.vector_count``
+    human-stroke drawings of the held-out categories (``vector_pool(…, "valid")``), restyled with a
+    fixed seed; empty when the vector data are absent.
+    """
+    v = cfg["train"]["val"]
+    rng = np.random.default_rng(int(v["seed"]))
+    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
+    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    if part == "generated":
+        samples = [generate(rng, gcfg, rules) for _ in range(int(v["count"]))]
+    else:
+        vcfg, n = cfg["train"].get("vector") or {}, int(v.get("vector_count", 0))
+        pool = vector_pool(vcfg, "valid") if n > 0 else {}
+        samples = [s for _ in range(n) if (s := draw_vector(rng, pool, vcfg, gcfg, rules)) is not None]
+    out = []
+    for s in samples:
+        x, _, band = prepare_sample(s, cfg)
+        out.append((x, band > 0, s.points, s.types))
+    return out
+
+
+
+def _vector_files(vcfg: dict, key: str = "files") -> list[str]:
+    """The files matched by the glob patterns ``vcfg[key]``, sorted, each once."""
+    return sorted({f for pat in vcfg.get(key) or [] for f in glob.glob(str(pat))})
+
+
+def category_split(files: list[str], holdout: int, seed: int) -> tuple[list[str], list[str]]:
+    """Split category files (one Quick, Draw! category per file) into training and validation.
+
+    Whole categories are held out, so validation drawings come from categories training never saw.
+    The held-out categories are the ``holdout`` names with the smallest hash of ``seed`` and the name:
+    the split depends only on the names, never on their order or their folder.
+
+    Returns
+    -------
+    train, valid : list of str
+        Disjoint, each sorted.
+    """
+    import hashlib
+
+    def rank(f: str) -> str:
+        return hashlib.sha256(f"{seed}:{Path(f).stem}".encode()).hexdigest()
+
+    order = sorted(files, key=rank)
+    valid = sorted(order[:max(int(holdout), 0)])
+    return sorted(set(files) - set(valid)), valid
+
+
+def vector_split(vcfg: dict) -> tuple[list[str], list[str]]:
+    """(training, held-out) ndjson files of ``train.vector`` (:func:`category_split` of ``files``)."""
+    return category_split(_vector_files(vcfg), int(vcfg.get("holdout", 0)), int(vcfg.get("split_seed", 0)))
+
+
+def _canvas(vcfg: dict, source: str) -> list[int]:
+    """[min, max] canvas side for a drawing of ``source`` ("ndjson" or "stroke3")."""
+    return vcfg.get("size", [384, 512]) if source == "ndjson" else vcfg.get("stroke3_size", [160, 320])
+
+
+def vector_pool(vcfg: dict, part: str = "train") -> dict[str, list[list[np.ndarray]]]:
+    """The human-stroke drawings of ``vcfg`` (``train.vector``) for one part of the split.
+
+    ``files`` are Quick, Draw! ndjson glob patterns relative to the working directory, one category
+    per file; :func:`category_split` holds ``holdout`` categories out for ``part="valid"``. The first
+    ``skip`` drawings of every file are left out (the first five of each file of
+    ``../shared/data/vector/quickdraw`` made realvec_dev). ``stroke3`` are sketch-rnn ``.npz`` files
+    (Omniglot) read with their own ``train`` / ``valid`` split, simplified by Douglas-Peucker at
+    ``stroke3_simplify`` file units. Strokes of fewer than two points are
+    dropped, and drawings left empty with them.
+
+    Returns
+    -------
+    dict
+        ``{"ndjson": [...], "stroke3": [...]}``, each a list of drawings (lists of (n, 2) strokes).
+    """
+    if part not in ("train", "valid"):
+        raise ValueError(f"part must be 'train' or 'valid', not {part!r}")
+    train_files, valid_files = vector_split(vcfg)
+    pool: dict[str, list] = {"ndjson": [], "stroke3": []}
+
+    def keep(strokes):
+        strokes = [s for s in strokes if len(s) >= 2]
+        return strokes or None
+
+    for f in train_files if part == "train" else valid_files:
+        for strokes in read_quickdraw_ndjson(f)[int(vcfg.get("skip", 0)):]:
+            if (strokes := keep(strokes)) is not None:
+                pool["ndjson"].append(strokes)
+    eps = float(vcfg.get("stroke3_simplify", 0.0))
+    for f in _vector_files(vcfg, "stroke3"):
+        for strokes in read_stroke3(f, part):
+            if eps > 0:
+                # Omniglot's coordinates lie on a coarse grid: its diagonals are one-cell staircases
+                # that the label rules would call corners. Douglas-Peucker at one cell removes them.
+                strokes = [approximate_polygon(s, eps) for s in strokes]
+            if (strokes := keep(strokes)) is not None:
+                pool["stroke3"].append(strokes)
+    return pool
+
+
+def draw_vector(rng: np.random.Generator, pool: dict, vcfg: dict, gcfg: GeneratorConfig, rules: LabelRules):
+    """One styled, labelled rendering of a random drawing of ``pool`` (None when the pool is empty).
+
+    A share ``stroke3_prob`` of the draws come from the stroke-3 symbols (on a ``stroke3_size``
+    canvas: they are single characters), the rest from the Quick, Draw! drawings (``size``).
+    """
+    nd, s3 = pool.get("ndjson") or [], pool.get("stroke3") or []
+    if not nd and not s3:
+        return None
+    source = "stroke3" if s3 and (not nd or rng.random() < float(vcfg.get("stroke3_prob", 0.0))) else "ndjson"
+    drawings = pool[source]
+    return render_vector(rng, drawings[rng.integers(len(drawings))], _canvas(vcfg, source), gcfg, rules)
+
+
+def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_range, gcfg: GeneratorConfig,
+                  rules: LabelRules):
+    """One styled, labelled rendering of a human-stroke drawing on a square canvas of side in ``size_range``."""
+    lo, hi = (int(v) for v in size_range)
+    size = int(rng.integers(lo, hi + 1))
+    return drawing_from_strokes(rng, fit_strokes(strokes, size), (size, size), gcfg, rules)
+
+
+def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules,
+                   part: str = "train", limit: int | None = None):
+    """Human strokes, styled and labelled like the generated drawings.
+
+    ``vcfg`` (``train.vector``): the pool (:func:`vector_pool`), ``renders`` (styled copies per
+    drawing, each with its own width, style and canvas size) and the canvas ranges. The strokes keep
+    their hand jitter, overdraw and near-touching ends — what the procedural generator lacks — and
+    their keypoints come from the same label rules. With ``limit``, that many drawings are drawn at
+    random instead (:func:`draw_vector`, the detector's mix): the whole pool is 37 k drawings.
+
+    Yields
+    ------
+    stages.keypoints.generator.Sample
+    """
+    pool = vector_pool(vcfg, part)
+    if limit is not None:
+        for _ in range(limit):
+            if (s := draw_vector(rng, pool, vcfg, gcfg, rules)) is None:
+                return
+            yield s
+        return
+    for source in ("ndjson", "stroke3"):
+        for strokes in pool[source]:
+            for _ in range(int(vcfg.get("renders", 1))):
+                yield render_vector(rng, strokes, _canvas(vcfg, source), gcfg, rules)
+
