@@ -271,7 +271,7 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
     """
     from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, render_ink,
                                        score_raster, stage_timings)
-    from stages.evaluate.topology import TopologyParams, compare_topology, extract_topology
+    from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
 
     rparams = RasterParams.from_cfg(bcfg["raster"])
     tparams = TopologyParams.from_cfg(bcfg["topology"])
@@ -307,13 +307,13 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
             row.update({k: v for k, v in score_raster(ink, gt_ink, rparams).items() if k != "blank"})
         if fid["fid_blank"] and not row["error"]:
             row["error"] = "blank output (no ink after rasterising the curves)"
-        topo = extract_topology(curves, width, tparams)
+        topo = curve_topology(curves, width, tparams)
         pic["markers"] = {"duplicate": topo.duplicated_points, "free_end": topo.free_ends,
                           "junction": topo.junctions, "gap": topo.gaps[:, :2]}
     elif expects_curves and not row["error"]:
         row["error"] = "no curves"
     if case.strokes is not None:
-        gt_topo = extract_topology(case.strokes, width, tparams)
+        gt_topo = curve_topology(case.strokes, width, tparams)
         pic["gt"] = (case.strokes, {"duplicate": gt_topo.duplicated_points, "free_end": gt_topo.free_ends,
                                     "junction": gt_topo.junctions, "gap": gt_topo.gaps[:, :2]})
         if curves is not None:
@@ -425,7 +425,7 @@ def case_picture(pic: dict, scale: int) -> np.ndarray:
     """Labelled panels: output curves and their topology; ground truth and its topology; keypoints."""
     from PIL import Image, ImageDraw
 
-    from stages.evaluate.render import hstack_panels, overlay
+    from stages.evaluate.report_pictures import hstack_panels, overlay
 
     panels: list[tuple[str, np.ndarray]] = []
     if pic["curves"] is not None:

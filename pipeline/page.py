@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.registry import STAGES
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
-from stages.topology.render import TYPE_COLOURS
+from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
 HEATMAP_PX = 512

@@ -20,84 +20,42 @@ Output (data of the artifact; the engine writes the files):
 
 The authors export raw polylines only (no Bézier fitting); this is an addition.
 
-Joining continuations (``join.enabled``; a choice beyond the paper).  The selection returns curves
-that end at every key vertex they meet, so a stroke crossing another one, or running on past a
-junction keypoint, often comes out as two curves meeting there end to end — and a stroke that
-overshoots a crossing by a few pixels leaves a short curve from the junction to its end (a "dangling
-branch" in the topology metrics, 0.68 per drawing on realvec_dev with ground-truth keypoints, against
-0.11 in the ground truth).  The authors' topology glued such chains at unexpected ends
-(``advancedGlueAllJunction``); we join the flowed curves instead: at every junction keypoint and
-synthetic end (never at an endpoint or a sharp corner), the two curve ends whose directions continue
-each other best — turn below ``join.max_turn_deg``, directions taken over ``join.tangent_px`` of arc,
-and every other end there turning off both by ``join.margin_deg`` more (a Y's stem continues neither
-branch) — are joined into one curve, repeatedly.  Valences, and with them the junctions, are unchanged (a
-curve passing a point counts twice, like two ends); only the split disappears.  Joined curves list
-their ``parts`` (selected path ids) and keep the first part's ``id``.
+Four clean-ups of the selected curves, each a choice beyond the paper (the authors export the
+selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
+unchanged by all four (a curve passing a point counts twice, like two ends).
 
-Spurs (``spurs.enabled``; a choice beyond the paper).  realvec_dev labels the tip of a stroke that
-overshoots a crossing as an endpoint, and the selection then returns a short curve from the junction
-to that tip next to the curve it continues: a "dangling branch" (the ground-truth stroke is one
-long curve).  A curve no longer than ``max(spurs.max_px, spurs.max_widths · width)`` from a junction
-keypoint to an endpoint keypoint is joined to the piece at that junction that continues it best —
-another curve ending there, or one half of a curve passing within ``spurs.near_px`` (which is
-split there) — when the turn is at most ``spurs.max_turn_deg``.  The drawn points and the
-valences are unchanged.  With ``max_turn_deg`` 60° → 75° dangling fell from 0.35 to 0.30 per
-drawing (realvec_dev, GT keypoints) and junction F1 stayed 0.831.
+* **Joining continuations** (``join``).  The selection returns curves that end at every key vertex
+  they meet, so a stroke crossing another or running on past a junction keypoint comes out as two
+  curves meeting end to end: a split the drawing does not have.  At every junction keypoint and
+  synthetic end (never at an endpoint or a sharp corner) the two curve ends whose directions
+  continue each other best — turn below ``join.max_turn_deg`` over ``join.tangent_px`` of arc, every
+  other end there turning off both by ``join.margin_deg`` more (a Y's stem continues neither branch)
+  — are joined into one curve, repeatedly.  The authors glued such chains in their topology
+  (``advancedGlueAllJunction``); we join the flowed curves.  Joined curves list their ``parts``
+  (selected path ids) and keep the first part's ``id``.
+* **Spurs** (``spurs``).  A stroke overshooting a crossing leaves a short curve from the junction to
+  its tip beside the curve it continues, a dangling branch where the drawing has one stroke.  A curve
+  no longer than ``max(spurs.max_px, spurs.max_widths · width)`` from a junction keypoint to an
+  endpoint keypoint is joined to the piece at that junction that continues it best — another curve
+  ending there, or one half of a curve passing within ``spurs.near_px`` (split there) — when the turn
+  is at most ``spurs.max_turn_deg``.  With ``spurs.by_drawn_valence`` corner and junction keypoint
+  ends count as drawn (a corner where ≥ 3 curve ends meet is a junction; a keypoint only this curve
+  reaches is a free end), as the valence topology of the evaluation reads them.
+* **Links below the drawing's resolution** (``collapse``).  One feature found twice a few pixels
+  apart (a corner at the bottom of a vee, a corner next to a junction) gives a tiny curve between the
+  two keypoints, which adds two ends where the drawing has one point.  A curve no longer than
+  ``max(collapse.max_px, collapse.max_widths · width)`` (one stroke width: the drawing cannot
+  resolve it) whose two ends both meet longer curves is contracted to its midpoint, as an edge in a
+  graph (:func:`collapse_short_links`), before the joins, which then see one meeting point.
+* **Overshoots** (``overshoot``).  When no keypoint marks the tip of an overshoot the topology ends
+  the stroke at the junction and the ink beyond is lost.  A curve end at a junction or synthetic end
+  is extended straight on to where the ink (prep ``mask``) stops, less half the stroke width (a
+  centre line ends half a width inside its ink), when that is between ``max(min_px, min_widths·w)``
+  and ``max(max_px, max_widths·w)`` and the new tip keeps ``clearance`` × its length from every other
+  curve (:func:`extend_overshoots`; a plain T gives ≈ 0, a Y's gap fails the clearance).
 
-Spur ends by their drawn valence (``spurs.by_drawn_valence``).  The spur rule reads "junction" and
-"free end" off the keypoint types, but a corner keypoint where three or more curve ends meet is drawn
-as a junction, and a corner or junction keypoint that only one curve reaches (nothing else ends or
-passes there) is drawn as a free end — which is also how the valence topology of the evaluation
-reads them.  With the option, such ends count as what is drawn: a short curve from a corner with
-≥ 3 ends to an endpoint, or from a junction to a corner nobody else reaches, is a spur too.
-realvec_dev, detector keypoints: dangling 27 → 20 in 106 drawings (0.25 → 0.19 per drawing); every
-other metric unchanged but in one tangled blob (qd_panda_02_clean, junction F1 0.68 → 0.67) and
-one F1@2 (−0.001).  Ground-truth keypoints (with the link contraction below): dangling 0.35 → 0.21
-per drawing, medians unchanged, junction F1 mean 0.8213 → 0.8181 (qd_whale_01_pencil 1.0 → 0.67:
-the tail's junction is read as a continuation after the split).
-
-Links below the drawing's resolution (``collapse.enabled``; a choice beyond the paper).  When one
-feature gets two keypoints a few pixels apart (a corner found twice at the bottom of a vee, a corner
-next to a junction), the selection draws a tiny curve between them and the other curves end at
-either keypoint; at the scale of the stroke width all those ends meet at one point, where the link
-adds two more ends (two corner arms + the link read as a junction).  A curve no longer than
-``max(collapse.max_px, collapse.max_widths · width)`` (one stroke width: the drawing cannot resolve
-it) whose two ends both meet longer curves is contracted to its midpoint, as an edge is contracted
-in a graph: it is removed and the ends that met it move to the midpoint (≤ half its length; see
-:func:`collapse_short_links`).  It runs before the joins, which then see one meeting point.
-realvec_dev with spurs by drawn valence on: detector keypoints junction F1 mean 0.6935 → 0.6962
-(median 0.703 → 0.708), dangling 20 → 20 per 106, one Hausdorff 3.0 → 3.16 px; GT keypoints
-Hausdorff and F1@2 unchanged, junction F1 mean 0.8185 → 0.8181.  Tried: links up to 1.5 widths
-(detector junction mean 0.6968, but with GT keypoints — resolvable pairs of real keypoints — one
-Hausdorff 3.0 → 3.6 px moved the median 3.08 → 3.16 and junction F1 mean fell 0.8213 → 0.8147);
-contracting after the joins (mean 0.6948); joining the link onto the neighbour that continues it
-instead of moving ends (mean 0.6950, one more dangling branch: the other ends stay a link's length
-away and still meet as a junction).
-
-Duplicated pieces were measured and left alone.  About 90 of the ~125 false junctions where three
-or more curve ends meet (detector keypoints) have two of those ends running along the same stroke
-for ≥ 2 stroke widths (within 0.75 px: flowed paths that took different graph routes through one
-band converge on one centre line; the selection keeps both because their *unflowed* routes cover
-different pixels).  Cutting the shared end run off the shorter curve (or dropping curves lying
-wholly within 0.75 px of others) halves the duplicated length (median 49.6 → 7 px) but moves the
-false junction to where the two curves part, which the ground truth rarely marks (junction FPs with
-nothing in the ground truth 122 → 193): junction F1 mean +0.001 (median +0.02), endpoint F1 mean
-−0.006, dangling +3, F1@2 of 60 drawings slightly lower; a band-width tolerance (0.5 w) cut the
-second of two touching parallel strokes.  Only 1 of the 13 false crossings is two duplicates
-crossing at a shallow angle.  In the selection, coverage from the flowed curves instead of the
-topology paths was much worse (more curves, duplicated median 420 px), and ``cap_branches`` raised
-the Hausdorff median 3.16 → 3.38 px.
-
-Overshoots (``overshoot.enabled``; a choice beyond the paper).  When no keypoint marks the tip of an
-overshoot, the topology ends the stroke at the junction and the few pixels of ink beyond are lost;
-on realvec_dev that tip was the largest Hausdorff error in about a quarter of the drawings.  A curve
-end at a junction or synthetic end is extended straight on to where the ink (prep ``mask``) stops,
-less half the stroke width (a stroke's centre line ends half a width inside its ink), when that is
-between ``max(min_px, min_widths·w)`` and ``max(max_px, max_widths·w)`` and the new tip keeps
-``clearance`` × its length from every other curve (see :func:`extend_overshoots`; a plain T gives
-≈ 0, a Y's gap fails the clearance).  realvec_dev with GT keypoints, spurs and overshoots together:
-Hausdorff median 3.38 → 3.08 px (min 2 px / 1 width: 3.16), dangling 0.50 → 0.31 per drawing,
-endpoint F1 0.909 (unchanged median, mean 0.858 → 0.864), junction F1 0.831 (unchanged).
+Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
+cutting them moves the false junction to where the curves part, which the ground truth rarely marks.
 """
 
 from __future__ import annotations
@@ -109,6 +67,7 @@ import numpy as np
 
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
+from stages.geometry import arc_length, point_at_arc, turn_deg
 
 STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
 
@@ -198,11 +157,10 @@ def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarr
     pts = np.asarray(points, np.float64)
     if not at_start:
         pts = pts[::-1]
-    s = np.r_[0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
+    s = arc_length(pts)
     if s[-1] <= 1e-12:
         return np.zeros(2)
-    target = min(arc_px, 0.5 * s[-1])
-    q = np.array([np.interp(target, s, pts[:, 0]), np.interp(target, s, pts[:, 1])])
+    q = point_at_arc(pts, s, min(arc_px, 0.5 * s[-1]))
     return _unit(pts[0] - q)
 
 
@@ -421,11 +379,6 @@ def _length(points: np.ndarray) -> float:
     return float(np.hypot(*np.diff(np.asarray(points, np.float64), axis=0).T).sum()) if len(points) > 1 else 0.0
 
 
-def _turn_deg(d_out_a: np.ndarray, d_out_b: np.ndarray) -> float:
-    """Turn between two ends meeting at a point (outward directions; 0° = straight on)."""
-    return float(np.degrees(np.arccos(np.clip(-(d_out_a @ d_out_b), -1.0, 1.0))))
-
-
 _SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology puts shared ends on one vertex)
 
 
@@ -523,7 +476,7 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                 continue
             for f in (0, 1):
                 if meets(c, f, t_j, k, p):
-                    t = _turn_deg(d_s, end_direction(c["points"], f == 0, tangent_px))
+                    t = turn_deg(d_s, end_direction(c["points"], f == 0, tangent_px))
                     if best is None or t < best[0]:
                         best = (t, j, "end", f)
             pts = c["points"]
@@ -534,7 +487,7 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                     for f, half in ((1, pts[:m + 1]), (0, pts[m:])):
                         if _length(half) <= 1e-9:
                             continue
-                        t = _turn_deg(d_s, end_direction(half, f == 0, tangent_px))
+                        t = turn_deg(d_s, end_direction(half, f == 0, tangent_px))
                         if best is None or t < best[0]:
                             best = (t, j, "split", (m, f))
         if best is None or best[0] > max_turn_deg:
@@ -656,7 +609,7 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             tip = p + ln * d
             # Other curves, and this curve's own far part (a closed loop's other end, a hairpin).
             pts = c["points"] if e == 0 else c["points"][::-1]
-            arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
+            arc = arc_length(pts)
             own = pts[arc > 2.0 * ln]
             others = owner != i
             near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
@@ -775,7 +728,7 @@ def fit_cubic_beziers(points: np.ndarray, tolerance: float, max_depth: int = 32)
             d = np.hypot(*(b - a)) / 3
             out.append(np.array([a, a + d * t0, b + d * t1, b]))
             return
-        s = np.r_[0, np.cumsum(np.hypot(*np.diff(seg, axis=0).T))]
+        s = arc_length(seg)
         u = s / s[-1]
         ctrl = _fit_segment(seg, u, t0, t1)
         for _ in range(20):

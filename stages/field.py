@@ -108,7 +108,7 @@ STAGE_VERSION = "1"
 __all__ = [
     "FieldConfig", "STAGE_VERSION", "run", "compute_field", "image_tangents", "coherence_weights",
     "smart_weights", "polyvector_roots", "root_matching", "singular_cells", "singular_pixels",
-    "bilinear_coefficients", "extend_field", "render_field",
+    "extend_field", "render_field",
 ]
 
 
@@ -416,47 +416,6 @@ def singular_pixels(cells: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         out[1:, :-1] |= cells
         out[1:, 1:] |= cells
     return out
-
-
-def bilinear_coefficients(c0: np.ndarray, c2: np.ndarray, xy) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinearly interpolated coefficients at points.
-
-    Parameters
-    ----------
-    c0, c2 : numpy.ndarray
-        complex (H, W) coefficient images, 0 off the band (e.g. the artifact's ``c0``/``c2``, or
-        ``c0_ext``/``c2_ext`` for the flow).
-    xy : array_like
-        (N, 2) or (2,) points (x, y) in pixel units, origin at the top-left *corner* of the image,
-        so pixel ``[i, j]`` has its centre at ``(j + 0.5, i + 0.5)``.
-
-    Returns
-    -------
-    c0_at, c2_at : numpy.ndarray
-        complex128, shape (N,) (or scalar-shaped () for a single point).  Off-band pixels count as 0
-        (the reference's rule), and so do pixels outside the image.
-    """
-    xy = np.asarray(xy, dtype=np.float64)
-    single = xy.ndim == 1
-    pts = np.atleast_2d(xy)
-    h, w = c0.shape
-    u = pts[:, 0] - 0.5
-    v = pts[:, 1] - 0.5
-    j0 = np.floor(u).astype(np.int64)
-    i0 = np.floor(v).astype(np.int64)
-    fu = u - j0
-    fv = v - i0
-    out0 = np.zeros(len(pts), dtype=np.complex128)
-    out2 = np.zeros(len(pts), dtype=np.complex128)
-    for di, dj, wt in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)),
-                       (1, 0, (1 - fu) * fv), (1, 1, fu * fv)):
-        ii, jj = i0 + di, j0 + dj
-        ok = (ii >= 0) & (ii < h) & (jj >= 0) & (jj < w)
-        out0[ok] += wt[ok] * c0[ii[ok], jj[ok]]
-        out2[ok] += wt[ok] * c2[ii[ok], jj[ok]]
-    if single:
-        return out0[0], out2[0]
-    return out0, out2
 
 
 def _order_ties(roots: np.ndarray, mask: np.ndarray, tau: np.ndarray, gmag: np.ndarray,

@@ -30,82 +30,59 @@ with all coefficients from the previous iterate.  ``k t + A + P`` is the exact g
 (tested against finite differences), so a fixed point is a stationary point of the reported energy.
 The matrix is real, symmetric and diagonally dominant (one Thomas sweep, complex right-hand side).
 
-Choices made on purpose (vs. the paper and the authors' code)
+Choices made on purpose (vs. the paper and the authors' code; measurements in stages/DECISIONS.md)
 ------------------------------------------------------------
-* **Stage order: flow, then select.**  As in the authors' code (not the paper's narrative) every
-  allowed path is flowed and the MIP chooses among the flowed curves with their energies as costs.
-  This is our DAG (flow → select), and it lets a λ sweep re-run only flow → select → export.
-* **What is implicit.**  Eq. 10 puts the complex ``G = g + i g'`` and the normal force ``F`` into the
-  matrix.  With frozen coefficients that is not a linearisation and buys no stability: on the
-  synthetic vee (real prep → field → graph → topology) that structure *raised* a path's energy by
-  2 % over 1500 iterations at α = 1e-2 (it settles in a worse state after oscillating).  We keep only
-  the isotropic part implicit (unconditionally stable) and the anisotropy explicit; with the step
-  control below the same path's energy falls by 3 %, and the vee/zigzag/X/T/Y candidates end at
-  equal or lower energies than with Eq. 10's structure.  We also take the *full* positional gradient
-  (the paper keeps its normal component), so that a fixed point is a stationary point of E_ε.
-* **Monotone energy.**  An iteration whose new curve has a higher E_ε than the previous one is
-  undone and that path's step is halved (then regrown ×1.25 per accepted step up to α).  The flow
-  therefore never raises a path's energy, whatever α; on drawings ~10 % of the iterations are undone,
-  mostly near convergence where the bilinear field's kinks make tiny increases.  The iteration after
-  an undo re-assembles the restored iterate's system from stored step-independent row coefficients
-  (its edges were evaluated one iteration earlier) and is not checked again: its energy is known.
-  The paper has no step control; the iteration count stays fixed (1500, no convergence test).
-* **Bilinear field lookup with its exact derivative** (the field's
-  :func:`stages.field.bilinear_coefficients` convention: pixel centres at +0.5, zero outside the
-  image).  The code's nearest-pixel lookup with central differences and its √(ν₁² + 2ν₂) factor are
-  not copied.
-* **τ = t/q** as in the paper (and the code): the alignment term fades on edges shorter than √ε,
-  which keeps its angular stiffness bounded; with the unit tangent short noisy edges collapsed.
+* **Stage order: flow, then select**, as in the authors' code: every allowed path is flowed and the
+  MIP chooses among the flowed curves with their energies as costs, so a λ sweep re-runs only
+  flow → select → export.
+* **Only the isotropic length is implicit**; the anisotropy and the positional forces are explicit,
+  and the full positional gradient is taken (the paper keeps its normal component).  Eq. 10's
+  complex implicit structure with frozen coefficients is no linearisation and raised energies; this
+  way a fixed point is a stationary point of E_ε.
+* **Monotone energy.**  An iteration that raises a path's E_ε is undone and that path's step halved
+  (regrown ×1.25 per accepted step up to α), so the flow never raises an energy whatever α.  The
+  iteration after an undo re-assembles the restored iterate's system from stored step-independent
+  row coefficients and is not checked again (its energy is known).  The iteration count stays
+  fixed (1500, no convergence test), as in the paper, which has no step control.
+* **Bilinear field lookup with its exact derivative** (the :func:`stages.geometry.bilinear`
+  convention: pixel centres at +0.5, zero outside the image) instead of the code's nearest-pixel
+  lookup with central differences: the energy the flow lowers is then the one it differentiates.
+* **τ = t/q** as in the paper and the code: the alignment term fades on edges shorter than √ε, which
+  keeps its angular stiffness bounded (with the unit tangent short noisy edges collapsed).
 * **Barrier = Eq. 5.**  ``B = max(1 − S, 0)`` enters both the length weight W and the force; its
-  gradient is ``−∇S`` where ``S < 1`` and zero elsewhere — the code's "barrier force only where
-  0 < S < 1" (beyond the 4σ cut-off S = 0 and there is no force either).  The code leaves B out of W.
+  gradient is ``−∇S`` where ``S < 1`` and zero elsewhere (the code's "barrier force only where
+  0 < S < 1"; beyond the 4σ cut-off S = 0).  The code leaves B out of W.
 * **Barrier centres** are placed uniformly in the σ-scaled arc length ``∫ ds/σ(s)`` of the initial
-  polyline, ``barrier.spacing`` σ apart (default 1σ, "spaced ≤ σ" like the code's extra centres),
-  with σ interpolated from the path widths and clamped below by ``barrier.sigma_min`` (σ = 0 would
-  give NaNs).  Unlike the code's "every vertex + extras" this makes S independent of how densely the
-  graph sampled the path: S ≈ √(2π)/spacing ≈ 2.5 on the initial curve, and B starts ≈ 1.35σ away.
-  S is summed over the centres within ``barrier.cutoff``·σ in a window of centre indices around the
-  nearest one ("home" centre, tracked as the curve moves), so other parts of the same path (a
-  hairpin) do not count.  Inside a precomputed safe radius round the home centre S ≥ 1 is certain
-  and nothing is summed; otherwise the sum stops once S ≥ 1.  Both shortcuts are exact for B.
-* **Time-step scaling** ``s = clip(d0/d, s_min, s_max)`` with d the graph distance (topology
-  ``interest_dist``) to the nearest high-valence vertex or path end.  With the code's d0 = 30,
-  s_min = 0.1, s_max = 2 this *is* the code's rule "2 if d < 15 else max(0.1, 30/d)", i.e. the
-  paper's "scale by the inverse distance" with caps: the flow moves curves most where the initial
-  graph geometry is least reliable (near junctions and ends).  d is carried by the barrier centres,
-  so it follows the vertices through resampling (the code indexes it by the stale vertex id).
+  polyline, ``barrier.spacing`` σ apart, σ interpolated from the path widths and clamped below by
+  ``barrier.sigma_min`` (σ = 0 gives NaNs): S then does not depend on how densely the graph sampled
+  the path (S ≈ √(2π)/spacing ≈ 2.5 on the initial curve).  S sums the centres within
+  ``barrier.cutoff``·σ in a window of centre indices around the nearest ("home") centre, tracked as
+  the curve moves, so other parts of the same path (a hairpin) do not count.  Inside a precomputed
+  safe radius round the home centre S ≥ 1 is certain and nothing is summed; otherwise the sum stops
+  once S ≥ 1 (both shortcuts are exact for B).
+* **Time-step scaling** ``s = clip(d0/d, s_min, s_max)``, d = topology ``interest_dist``: with the
+  code's d0 = 30, s_min = 0.1, s_max = 2 this is its rule "2 if d < 15 else max(0.1, 30/d)", the
+  paper's inverse-distance scaling, moving curves most where the graph is least reliable (near
+  junctions and ends).  d is carried by the barrier centres, so it follows the vertices through
+  resampling (the code indexes it by the stale vertex id).
 * **α = 1e-2 and λ = 3** (``dt``, ``lam``), the code's values (the paper quotes δ = 5e-3).
-* **Resampling.**  Each path is first resampled uniformly by arc length with ``spacing`` px (the code
-  keeps the vertex count of the graph chain, whose density varies, so its g and ε act differently
-  on every path); whenever the longest edge exceeds ``resample_factor`` × the initial mean edge it
-  is resampled again to the same count.  With 0.75 px and factor 1.34 edges stay under one pixel,
-  as the paper asks.  After a resampling the next step is accepted unconditionally (other
-  discretisation).  The spacing sets the cost (the iteration count is fixed): 0.5 px gave 49 900
-  vertices on the scanned elephant, 0.75 px gives 33 400 (flow CPU 4.2 → 2.8 s), and on
-  realvec_dev (GT keypoints, 106 cases) 0.75 px scores as 0.5 px did — Hausdorff median 3.08 px
-  both, endpoint F1 0.913 vs 0.909, junction F1 0.833 vs 0.831, Chamfer 0.152 vs 0.147 px,
-  dangling 0.34 vs 0.31 per drawing; 1.0 px (edges up to 2 px) was worse (Hausdorff 3.16 px,
-  Chamfer 0.150).  The authors' chains are denser still (~0.3 px in their example).
-* **Energies (MIP cost)** are E_ε of the flowed curves: Eq. 6a with the Eq. 5 barrier, discretised as
-  the flow sees it (uniform spacing makes it comparable between paths).  The code instead *adds* the
-  Gaussian sum S to g in its MIP cost; S ≈ 2.5 along any curve that stayed in its tube, so that adds
-  a roughly constant, sampling-dependent length penalty, and we drop it.
+* **Resampling** uniformly by arc length every ``spacing`` px first (the code keeps the graph chain's
+  varying density, so its g and ε act differently on every path), and again to the same count when
+  the longest edge exceeds ``resample_factor`` × the initial mean edge; 0.75 px and 1.34 keep edges
+  under one pixel, as the paper asks, at 2/3 of the cost of 0.5 px.  After a resampling the next
+  step is accepted unconditionally (another discretisation).
+* **Energies (MIP cost)** are E_ε of the flowed curves (Eq. 6a with the Eq. 5 barrier, as the flow
+  sees it; uniform spacing makes them comparable).  The code adds S to g in its MIP cost, a roughly
+  constant, sampling-dependent length penalty (S ≈ 2.5 along a curve in its tube): dropped.
 * **All paths in one compiled call.**  The paths are independent blocks of one block-tridiagonal
-  system (the fixed endpoints decouple them); one numba kernel runs the whole iteration loop of
-  every block, blocks in parallel (``prange``, longest first, one at a time), with the edge terms,
-  the energy and the Thomas forward sweep fused in one pass.  ``scipy.linalg.solve_banded`` on the
-  stacked system alone takes 4.8 ms per iteration (7 s for the run) before any of the per-edge work.
-  What the kernel costs (CPU time per vertex and iteration, scanned elephant, 49 900 vertices, one
-  thread): 64 ns as first written; 50 ns now — the field is stored with a one-pixel zero border
-  (no per-corner bounds tests in the bilinear lookup), ∂(q g)/∂t is formed from conj(A) (no
-  1/|t|², no complex division), divisions by real numbers are multiplications by a reciprocal, an
-  undone step swaps two buffers instead of copying and the next iteration reuses the stored rows
-  (−11 %), and the kernel is compiled with the fastmath
-  flags ``contract, arcp, nsz, afn``.  ``reassoc`` would give another 10 % but lets LLVM vectorise
-  reductions with an alignment-dependent order, which made the rejected-step count (and the
-  last bits of the curves) differ from run to run; ``nnan``/``ninf`` are never used (the
-  non-finite check must stay).  A block whose solve turns non-finite stops and keeps its last finite iterate
-  (``data["failed"]``).
+  system (fixed endpoints decouple them); one numba kernel runs the whole iteration loop of every
+  block, blocks in parallel (``prange``, longest first), edge terms, energy and the Thomas forward
+  sweep fused in one pass — a banded solver on the stacked system alone costs more than the run.
+  The field is stored with a one-pixel zero border (no bounds tests in the lookup), ∂(q g)/∂t is
+  formed from conj(A), an undone step swaps two buffers.  Fastmath flags ``contract, arcp, nsz,
+  afn`` only: ``reassoc`` makes results differ from run to run, and ``nnan``/``ninf`` would remove
+  the non-finite check.  A block whose solve turns non-finite stops and keeps its last finite
+  iterate (``data["failed"]``).
 
 References
 ----------
@@ -355,6 +332,7 @@ def _bilinear(c: np.ndarray, x: float, y: float):
     """Bilinear value and exact x/y derivatives of a complex pixel-centre grid at (x, y).
 
     Pixel ``[i, j]`` has its centre at ``(j + .5, i + .5)``; samples outside the image count as 0.
+    Compiled copy of :func:`stages.geometry.bilinear` (the reference), with the derivatives.
     """
     h, w = c.shape
     u = x - 0.5
@@ -482,13 +460,13 @@ def _barrier(cen, sig, rho2, c0i, nc, win, cut2, mx, my, h, d2h):
             s2 = sig[c0i + k] * sig[c0i + k]
             d2 = dx * dx + dy * dy
             if d2 < cut2 * s2:
-                e = math.exp(-0.5 * d2 / s2)
+                e = math.exp(-0.5 * d2 / s2)             # S = Σ_k exp(−|x − p_k|² / 2σ_k²) (Eq. 5)
                 s += e
                 gx -= e * dx / s2
                 gy -= e * dy / s2
         if s >= 1.0:
             return 0.0, 0.0, 0.0
-    return 1.0 - s, -gx, -gy
+    return 1.0 - s, -gx, -gy                                 # B = max(1 − S, 0) (Eq. 5), ∇B = −∇S
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy", fastmath=_FM)
@@ -504,7 +482,7 @@ def _edge_terms(fld, t, m, eps):
     tau = complex(t.real * rq, t.imag * rq)
     a0, a0x, a0y, a2, a2x, a2y = _bilinear_field(fld, m.real, m.imag)
     tau2 = tau * tau
-    f = tau2 * tau2 + a2 * tau2 + a0
+    f = tau2 * tau2 + a2 * tau2 + a0                # f(m, τ) = τ⁴ + c2 τ² + c0, g = |f|² (Eq. 5's |f(x, τ)|²)
     fc = f.conjugate()
     g = f.real * f.real + f.imag * f.imag
     # ∂(q g)/∂t = 2 conj(A) − 2 Re(A t) t / q²  with  A = conj(f) f'(τ),  f'(τ) = τ (4τ² + 2 c2).
@@ -530,6 +508,7 @@ def _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, za, zb, home_j):
     g, ft, gx, gy, q = _edge_terms(fld, t, m, eps)
     h, d2h = _update_home(cen, c0i, nc, m.real, m.imag, home_j)
     b, bx, by = _barrier(cen, sig, rho2, c0i, nc, win, cut2, m.real, m.imag, h, d2h)
+    # W = g + B + λ (Eq. 5's weight b(x) plus the alignment); P = (q/2) ∇_x(g + B)(m) (§5.4).
     return t, g + b + lam, q, ft, (0.5 * q) * complex(gx + bx, gy + by), h
 
 
@@ -540,7 +519,7 @@ def _path_energy(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, home):
     for j in range(1, n):
         _, w, q, _, _, home[j] = _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, z[j - 1], z[j],
                                        home[j])
-        e += w * q
+        e += w * q                                          # E_ε = Σ_j W_j q_j (discrete Eq. 6a)
     return e
 
 
@@ -559,7 +538,11 @@ def _discrete_gradient(z, n, fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, 
 
 @numba.njit(cache=True)
 def _resample(z, n, tmp, home, home_tmp):
-    """Uniform arc-length resampling of z[:n] in place (ends kept); carries the home indices."""
+    """Uniform arc-length resampling of z[:n] in place (ends kept); carries the home indices.
+
+    Compiled counterpart of :func:`stages.geometry.resample_uniform` (the reference) for a fixed count
+    of complex points inside the flow kernel, which cannot call the numpy version.
+    """
     cum = np.empty(n)
     cum[0] = 0.0
     for j in range(1, n):
@@ -661,15 +644,15 @@ def _flow_kernel(order, z, zoff, cen, sig, rho2, dist, coff, home, window, fld, 
                     _, w, q, ft, fm, h = _edge(fld, cen, sig, rho2, c0i, nc, win, cut2, lam, eps, cur[j - 1], cur[j],
                                                hp[j])
                     hp[j] = h
-                    e_cur += w * q
-                    k_cur = w / q                                    # implicit: isotropic length
+                    e_cur += w * q                                   # E_ε = Σ_j W_j q_j (discrete Eq. 6a)
+                    k_cur = w / q                                    # k_j = W_j / q_j, implicit (Eq. 10's G_j / q_j, isotropic part)
                     d_cur = dist[c0i + h]
                     if j >= 2:
                         r = j - 2
                         d = 0.5 * (d_prev + d_cur)
                         s = smax if d <= 0.0 else min(max(d0 / d, smin), smax)
                         mb = (q_prev + q) / s
-                        mass = mb * inv2dt
+                        mass = mb * inv2dt                           # M_j = (q_j + q_{j+1}) / (2 α s_j) (Eq. 10's 1/2δ term)
                         dia = mass + k_prev + k_cur
                         # Vertex j − 1 ends edge j − 1 and starts edge j.
                         f0 = -(f_prev + fm - ft)

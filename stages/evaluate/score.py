@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.evaluate.raster import benchmark_stroke_width, binarise, rasterise_polylines, raster_metrics
-from stages.evaluate.topology import TopologyParams, compare_topology, extract_topology
+from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
 
 __all__ = [
     "RasterParams",
@@ -123,10 +123,10 @@ def score_topology(curves: Sequence[np.ndarray], gt_strokes: Sequence[np.ndarray
         ``junction_gaps``, ``dangling``, ``duplicated_px`` ...). With it, also
         ``endpoint_{precision,recall,f1}``, ``junction_{precision,recall,f1}`` and ``gt_*`` counts.
     """
-    out = extract_topology(curves, width, params)
+    out = curve_topology(curves, width, params)
     if gt_strokes is None:
         return out.counts()
-    gt = extract_topology(gt_strokes, width, params)
+    gt = curve_topology(gt_strokes, width, params)
     return compare_topology(out, gt, width, params)
 
 

@@ -57,7 +57,7 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.graph import cleanup
 from stages.graph.cross_section import RawGraph, build_cross_sections, streamline_edges
-from stages.graph.render import render_graph
+from stages.graph.graph_picture import render_graph
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
 STAGE_VERSION = "3"  # 3: narrow loop caps closed (cleanup.close_loop_caps)

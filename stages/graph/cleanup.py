@@ -84,6 +84,7 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+from stages.geometry import segment_in_band
 
 
 def _adjacency(n: int, edges: np.ndarray) -> list[set]:
@@ -518,7 +519,7 @@ def join_singular_ends(xy, width, edges, flags, band, singular, max_distance, mi
                 continue
             cands.append((float(np.hypot(*d)), q))
         for _, q in sorted(cands):
-            if not _segment_in_band(xy[v], xy[q], band):
+            if not segment_in_band(band, xy[v], xy[q]):
                 continue
             if _hops_within(adj, v, q, min_hops):
                 continue
@@ -565,23 +566,11 @@ def close_loop_caps(xy, width, edges, band, max_widths, min_hops):
     adj = _adjacency(n, edges)
     added, used = [], set()
     for _, u, v in sorted(pairs):
-        if u in used or v in used or not _segment_in_band(xy[u], xy[v], band) or _hops_within(adj, u, v, min_hops):
+        if u in used or v in used or not segment_in_band(band, xy[u], xy[v]) or _hops_within(adj, u, v, min_hops):
             continue
         added.append((min(u, v), max(u, v)))
         used.update((u, v))
     return np.array(sorted(added), dtype=np.int64).reshape(-1, 2)
-
-
-def _segment_in_band(a, b, band):
-    k = max(2, int(np.ceil(np.hypot(*(b - a)) / 0.25)) + 1)
-    t = np.linspace(0, 1, k)[:, None]
-    p = a + t * (b - a)
-    i = np.floor(p[:, 1]).astype(int)
-    j = np.floor(p[:, 0]).astype(int)
-    h, w = band.shape
-    if (i < 0).any() or (j < 0).any() or (i >= h).any() or (j >= w).any():
-        return False
-    return bool(band[i, j].all())
 
 
 def _hops_within(adj, a, b, hops):

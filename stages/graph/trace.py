@@ -43,7 +43,10 @@ LEFT, SINGULAR, MERGED, CAP, DEGENERATE = 0, 1, 2, 3, 4
 
 @njit(cache=True)
 def coeffs_at(c0, c2, x, y):
-    """Bilinear c0, c2 at point (x, y) (pixel centres at +0.5); outside the image counts as 0."""
+    """Bilinear c0, c2 at point (x, y) (pixel centres at +0.5); outside the image counts as 0.
+
+    Compiled copy of :func:`stages.geometry.bilinear` (the reference): nopython code cannot call it.
+    """
     h, w = c0.shape
     u = x - 0.5
     v = y - 0.5

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from stages.geometry import point_at_arc, resample_uniform
+
 ENDPOINT, JUNCTION, CORNER = 1, 3, 5
 TYPE_CODES = (ENDPOINT, JUNCTION, CORNER)  # channels 1, 2, 3 of the heatmaps, in this order
 
@@ -54,41 +56,12 @@ class LabelRules:
         return cls(**{k: float(d[k]) for k in ("min_radius", "corner_turn_deg", "crossing_min_deg", "step")})
 
 
-def resample(pts: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Resample a polyline at constant arc-length spacing.
-
-    Parameters
-    ----------
-    pts : numpy.ndarray
-        (n, 2) vertices.
-    step : float
-        Spacing in pixels.
-
-    Returns
-    -------
-    points : numpy.ndarray
-        (m, 2) resampled vertices, first and last kept.
-    arc : numpy.ndarray
-        (m,) arc length of each resampled vertex.
-    """
-    pts = np.asarray(pts, dtype=np.float64)
-    seg = np.hypot(*np.diff(pts, axis=0).T)
-    keep = np.concatenate([[True], seg > 1e-9])
-    pts = pts[keep]
-    if len(pts) < 2:
-        return pts[:1].copy(), np.zeros(1)
-    cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-    n = max(int(np.ceil(cum[-1] / step)), 1)
-    s = np.linspace(0.0, cum[-1], n + 1)
-    return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], axis=1), s
-
-
 def _at(points: np.ndarray, arc: np.ndarray, s: np.ndarray | float, closed: bool) -> np.ndarray:
     """Point at arc length ``s`` (wrapped on closed strokes, clamped on open ones)."""
     total = arc[-1]
     s = np.asarray(s, dtype=np.float64)
     s = np.mod(s, total) if closed and total > 0 else np.clip(s, 0.0, total)
-    return np.stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])], axis=-1)
+    return point_at_arc(points, arc, s)
 
 
 def _turning(points, arc, s, chord, closed) -> np.ndarray:
@@ -157,7 +130,7 @@ def label_keypoints(strokes: list[np.ndarray], widths: list[float] | np.ndarray,
     """
     rs, arcs, radius, closed = [], [], [], []
     for pts, w in zip(strokes, widths):
-        p, s = resample(pts, rules.step)
+        p, s = resample_uniform(pts, rules.step)
         rs.append(p)
         arcs.append(s)
         r = max(rules.min_radius, float(w))

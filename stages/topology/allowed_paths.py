@@ -2,7 +2,7 @@
 
 For each pair of key vertices of a component's subgraph, the allowed paths are the simple paths
 between them that contain no other key vertex and take only allowed turns at vertices of valence ≥ 3
-(the Y-junction test, :func:`stages.topology.graph.turn_table`).  X and T junctions need no test:
+(the Y-junction test, :func:`stages.topology.work_graph.turn_table`).  X and T junctions need no test:
 their two strokes are disjoint branches of the graph.
 
 The enumeration runs on the subgraph's *chains* (maximal runs of valence-2 vertices between
@@ -182,7 +182,7 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
 
     Parameters
     ----------
-    g : stages.topology.graph.WorkGraph
+    g : stages.topology.work_graph.WorkGraph
     sub_edge : numpy.ndarray
         bool (E,) edges of the covering subgraph.
     comp : int

@@ -64,14 +64,14 @@ def _search(indptr, indices, arc_w, arc_rev, turn_ptr, turn_ok, v0, v1, uncovere
         a = st // k1 + a0
         k = st % k1
         v = indices[a]
-        if k == need and is_target[v]:
+        if k == need and is_target[v]:       # §4.2: a walk to a key vertex visiting ≥ N uncovered vertices
             best = st
             break
         rev = arc_rev[a]
         tp = turn_ptr[a]
         for j in range(indptr[v + 1] - indptr[v]):
             b = indptr[v] + j
-            if b == rev or not turn_ok[tp + j]:
+            if b == rev or not turn_ok[tp + j]:   # no reversal; §4.3 Fig. 10: only allowed turns at a Y
                 continue
             k2 = min(need, k + uncovered[indices[b]])
             s2 = (b - a0) * k1 + k2
@@ -101,11 +101,11 @@ def constrained_walk(g, arc_w, turn_ptr, turn_ok, comp: int, uncovered: np.ndarr
 
     Parameters
     ----------
-    g : stages.topology.graph.WorkGraph
+    g : stages.topology.work_graph.WorkGraph
     arc_w : numpy.ndarray
         float64 (A,) arc costs (Euclidean lengths).
     turn_ptr, turn_ok : numpy.ndarray
-        The Y-junction turn table (:func:`stages.topology.graph.turn_table`).
+        The Y-junction turn table (:func:`stages.topology.work_graph.turn_table`).
     comp : int
         Component to search (its vertex range).
     uncovered : numpy.ndarray

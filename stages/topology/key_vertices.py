@@ -33,18 +33,7 @@ from scipy.ndimage import map_coordinates
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-
-def segment_in_band(mask: np.ndarray, p: np.ndarray, q: np.ndarray, step: float = 0.25) -> bool:
-    """Whether every pixel the straight segment ``p → q`` (x, y) passes through is a band pixel."""
-    n = max(2, int(np.ceil(np.hypot(*(q - p)) / step)) + 1)
-    t = np.linspace(0.0, 1.0, n)[:, None]
-    pts = p + t * (q - p)
-    j = np.floor(pts[:, 0]).astype(np.int64)
-    i = np.floor(pts[:, 1]).astype(np.int64)
-    h, w = mask.shape
-    if (i < 0).any() or (j < 0).any() or (i >= h).any() or (j >= w).any():
-        return False
-    return bool(mask[i, j].all())
+from stages.geometry import segment_in_band
 
 
 def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndarray, roots: np.ndarray,
@@ -54,7 +43,7 @@ def find_key_vertices(g, comp_of: np.ndarray, points: np.ndarray, types: np.ndar
 
     Parameters
     ----------
-    g : stages.topology.graph.WorkGraph
+    g : stages.topology.work_graph.WorkGraph
         Graph at the original vertex positions.
     comp_of : numpy.ndarray
         int64 (V,) component of every vertex.

@@ -20,7 +20,7 @@ from PIL import Image
 
 from stages.evaluate.matching import match_one_to_one, prf1
 from stages.evaluate.score import RasterParams, render_ink, score_raster
-from stages.evaluate.topology import TopologyParams, extract_topology
+from stages.evaluate.curve_topology import TopologyParams, curve_topology
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data" / "realvec_dev"
@@ -42,7 +42,7 @@ def main() -> None:
         ink = render_ink(strokes, grey.shape, rp)
         fid = score_raster(ink, grey < rp.ink_threshold, rp, prefix="fid_")
         t1 = time.perf_counter()
-        topo = extract_topology(strokes, d["width"], tp)
+        topo = curve_topology(strokes, d["width"], tp)
         t2 = time.perf_counter()
         f1 = {}
         for name, mine, theirs in (("end", topo.free_ends, d["endpoints"]), ("junc", topo.junctions, d["junctions"])):

@@ -8,7 +8,7 @@ Usage::
 Cases (default: all available):
 
 * ``synthetic``: the bundled example drawing through the real prep → field → graph, without keypoints;
-  ``ladder-200``: a fixture graph (stages.topology.synthetic_graph) of one component with 200 cycles
+  ``ladder-200``: a fixture graph (tests/synthetic_graph.py) of one component with 200 cycles
   and 4 keypoints — the kind of component on which the authors' constrained path search gives up;
 * the four scanned drawings of ``../shared/data/drawings/scanned`` (no keypoints unless
   ``--keypoints stage``);
@@ -39,6 +39,7 @@ import numpy as np
 from _common import ROOT, source_hash, stage_cfg  # noqa: E402
 SHARED = ROOT / ".." / "shared" / "data"
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # tests/synthetic_graph.py, the fixture graphs
 
 REALVEC = ["qd_dog_00_pencil", "qd_teddy-bear_00_clean", "cr_test_277_clean", "cr_test_199_pencil",
            "qd_cat_00_clean", "qd_giraffe_00_clean", "qd_crab_01_pencil", "qd_rhinoceros_01_pencil",
@@ -101,7 +102,7 @@ def _image(name: str) -> Path:
 
 def _case_inputs(name: str, cache: Path, keypoints: str) -> tuple[dict, np.ndarray]:
     from stages import synthetic
-    from stages.topology.synthetic_graph import ladder, synthetic_inputs
+    from synthetic_graph import ladder, synthetic_inputs
 
     if name == "ladder-200":
         key = cache / "ladder-200.pkl"
@@ -133,7 +134,7 @@ def main(argv=None) -> int:
 
     import stages.topology as topology
     from stages.synthetic import line
-    from stages.topology.synthetic_graph import synthetic_inputs
+    from synthetic_graph import synthetic_inputs
 
     cache = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "polyvec-bench-topology"
     cache.mkdir(parents=True, exist_ok=True)

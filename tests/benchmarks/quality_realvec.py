@@ -187,7 +187,7 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
     row: dict = {"name": name, "error": ""}
     try:
         from stages.evaluate.score import RasterParams, render_ink, score_raster
-        from stages.evaluate.topology import TopologyParams, compare_topology, extract_topology
+        from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
 
         res = run_case(name, keypoints, use_cache)
         case, arts = res["case"], res["arts"]
@@ -209,7 +209,7 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
         row["chamfer_px"] = m["chamfer"] * long_edge
         row["hausdorff_px"] = m["hausdorff"] * long_edge
         w = float(case["width"])
-        topo_o, topo_g = extract_topology(curves, w, tp), extract_topology(strokes, w, tp)
+        topo_o, topo_g = curve_topology(curves, w, tp), curve_topology(strokes, w, tp)
         row.update(compare_topology(topo_o, topo_g, w, tp))
         row.update(error_breakdown(topo_o, topo_g, case, w, tp, np.asarray(arts["keypoints"]["points"]).reshape(-1, 2)))
     except Exception as e:                                          # one case must not sink the run
@@ -368,11 +368,11 @@ def render_case(name: str, out: Path, keypoints: str = "gt", scale: int = 2, cro
     kp = arts["keypoints"]
     kps = list(zip(np.asarray(kp["points"]).reshape(-1, 2), np.asarray(kp["types"]).ravel()))
     colours = {1: (0.1, 0.3, 1.0), 3: (1.0, 0.55, 0.0), 5: (0.0, 0.7, 0.2)}
-    from stages.evaluate.topology import TopologyParams, extract_topology
+    from stages.evaluate.curve_topology import TopologyParams, curve_topology
 
     tp = TopologyParams.from_cfg(load_cfg("bench")["topology"])
     wd = float(case.get("width", 3.0))
-    topo_o, topo_g = extract_topology(curves, wd, tp), extract_topology(strokes, wd, tp)
+    topo_o, topo_g = curve_topology(curves, wd, tp), curve_topology(strokes, wd, tp)
 
     def picture(x0, y0, cw, ch, sc):
         img = np.repeat((0.6 + 0.4 * np.kron(grey[y0:y0 + ch, x0:x0 + cw], np.ones((sc, sc))))[..., None], 3, 2)

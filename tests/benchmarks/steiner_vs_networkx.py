@@ -21,7 +21,7 @@ from networkx.algorithms.approximation import steiner_tree as nx_steiner
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-import stages.topology.extract as ex  # noqa: E402
+import stages.topology.candidates as ex  # noqa: E402
 from stages.topology.steiner import steiner_tree  # noqa: E402
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from stages.evaluate.render import hstack_panels, overlay
+from stages.evaluate.report_pictures import hstack_panels, overlay
 from stages.evaluate.score import estimate_stroke_width, stage_timings, summarise
 from stages.evaluate.svg import parse_svg_polylines, svg_size
 from stages.synthetic import render

@@ -1,4 +1,4 @@
-"""Topology metrics by valence on hand-built curve sets (stages/evaluate/topology.py)."""
+"""Topology metrics by valence on hand-built curve sets (stages/evaluate/curve_topology.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import yaml
 
 from pipeline.cli import REPO_CONF
 from stages.evaluate.matching import match_one_to_one, prf1
-from stages.evaluate.topology import (TopologyParams, benchmark_gap_statistics, compare_topology,
-                                      extract_topology)
+from stages.evaluate.curve_topology import (TopologyParams, benchmark_gap_statistics, compare_topology,
+                                      curve_topology)
 from tests.conftest import shared_path
 
 P = TopologyParams.from_cfg(yaml.safe_load((REPO_CONF / "bench" / "default.yaml").read_text())["topology"])
@@ -21,7 +21,7 @@ BAR = np.array([[10.0, 50.0], [90.0, 50.0]])
 
 
 def topo(*curves, width=W):
-    return extract_topology([np.asarray(c, dtype=float) for c in curves], width, P)
+    return curve_topology([np.asarray(c, dtype=float) for c in curves], width, P)
 
 
 def _has(points, xy, tol=1.0):
@@ -146,7 +146,7 @@ def test_ground_truth_extraction_agrees_with_dataset_labels():
     f1s = []
     for name in ("cr_test_161_clean", "qd_bear_00_clean", "tu_angel_161_pencil", "qd_cat_01_pencil"):
         d = json.loads((root / f"{name}.json").read_text())
-        t = extract_topology([np.array(s) for s in d["strokes"]], d["width"], P)
+        t = curve_topology([np.array(s) for s in d["strokes"]], d["width"], P)
         for mine, theirs in ((t.free_ends, d["endpoints"]), (t.junctions, d["junctions"])):
             theirs = np.asarray(theirs, dtype=float).reshape(-1, 2)
             tp = len(match_one_to_one(mine, theirs, max(5, d["width"])))

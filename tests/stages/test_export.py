@@ -189,7 +189,7 @@ def test_run_joins_and_lists_the_parts():
 
 def _vectorise(drawing):
     from stages import field, flow, graph, prep, select, topology
-    from stages.topology.synthetic_graph import synthetic_inputs
+    from synthetic_graph import synthetic_inputs
 
     conf = {n: yaml.safe_load((ROOT / "conf" / n / "default.yaml").read_text())
             for n in ("prep", "field", "graph", "topology", "flow", "select")}
@@ -359,10 +359,10 @@ def test_spur_at_a_synthetic_junction_with_a_free_synthetic_end():
 # ---------------------------------------------------------------------------------------------
 
 def _topology(curves, width=3.0):
-    from stages.evaluate.topology import TopologyParams, extract_topology
+    from stages.evaluate.curve_topology import TopologyParams, curve_topology
 
     bench = yaml.safe_load((ROOT / "conf" / "bench" / "default.yaml").read_text())
-    return extract_topology([np.asarray(c["points"]) for c in curves], width,
+    return curve_topology([np.asarray(c["points"]) for c in curves], width,
                             TopologyParams.from_cfg(bench["topology"]))
 
 

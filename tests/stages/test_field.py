@@ -220,18 +220,6 @@ def test_axis_aligned_strokes_put_the_tangent_first(angle):
     assert (_angle_error(art["roots"][..., 0][mask], angle) < 2).mean() > 0.9
 
 
-def test_bilinear_coefficients():
-    c0 = np.zeros((4, 5), np.complex64)
-    c2 = np.zeros((4, 5), np.complex64)
-    c0[1, 1], c0[1, 2] = 1 + 1j, 3 + 0j
-    c2[1, 1] = 2j
-    a0, a2 = field.bilinear_coefficients(c0, c2, [[1.5, 1.5], [2.0, 1.5], [2.5, 2.0], [-3, 1.5]])
-    assert np.allclose(a0, [1 + 1j, 2 + 0.5j, 1.5, 0])  # centre, midpoint, half off-band, outside
-    assert np.allclose(a2, [2j, 1j, 0, 0])
-    s0, s2 = field.bilinear_coefficients(c0, c2, (1.5, 1.5))
-    assert np.ndim(s0) == 0 and np.isclose(s0, 1 + 1j) and np.isclose(s2, 2j)
-
-
 def test_render_field():
     d = synthetic.cross(size=32, length=24)
     art = _run(d.grey)

@@ -101,8 +101,8 @@ def _line_distance(pts, a, nrm):
 # Building blocks
 # ---------------------------------------------------------------------------------------------
 
-def test_bilinear_matches_field_stage_and_its_derivative():
-    from stages.field import bilinear_coefficients
+def test_bilinear_matches_reference_and_its_derivative():
+    from stages.geometry import bilinear
 
     rng = np.random.default_rng(1)
     c0 = rng.normal(size=(7, 9)) + 1j * rng.normal(size=(7, 9))
@@ -110,7 +110,7 @@ def test_bilinear_matches_field_stage_and_its_derivative():
     xy = rng.uniform(-1.5, 10.5, size=(200, 2))
     v0, dx0, dy0 = flow.bilinear_with_gradient(c0, xy)
     v2, _, _ = flow.bilinear_with_gradient(c2, xy)
-    r0, r2 = bilinear_coefficients(c0, c2, xy)
+    r0, r2 = bilinear(c0, xy), bilinear(c2, xy)
     np.testing.assert_allclose(v0, r0, atol=1e-12)
     np.testing.assert_allclose(v2, r2, atol=1e-12)
     # Exact derivative of the interpolant (away from the cell borders where it jumps).
@@ -329,7 +329,7 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
     """prep → field (real) + synthetic graph → topology → flow on a T: every curve stays on its stroke."""
     pytest.importorskip("stages.topology")
     from stages import field as field_stage, prep as prep_stage, topology
-    from stages.topology.synthetic_graph import synthetic_inputs
+    from synthetic_graph import synthetic_inputs
 
     d = synthetic.tee()
     cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731

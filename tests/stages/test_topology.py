@@ -1,6 +1,6 @@
 """Tests of the topology stage on drawings whose answer is known.
 
-Graph artifacts come from :mod:`stages.topology.synthetic_graph` (chains along the exact centre lines,
+Graph artifacts come from tests/synthetic_graph.py (chains along the exact centre lines,
 shaped like the traced graph at X, T and Y junctions); masks from the rendered grey.
 """
 
@@ -20,7 +20,7 @@ from stages.errors import InputError
 from stages.synthetic import Drawing, render
 from stages.topology import run, render_topology
 from stages.topology.steiner import steiner_tree
-from stages.topology.synthetic_graph import ladder, synthetic_inputs
+from synthetic_graph import ladder, synthetic_inputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "topology" / "default.yaml").read_text())

@@ -1,6 +1,6 @@
 """Topology of a set of curves by valence, and its comparison with vector ground truth.
 
-The same extraction (:func:`extract_topology`) runs on the ground-truth strokes and on the output
+The same extraction (:func:`curve_topology`) runs on the ground-truth strokes and on the output
 curves, so the two are judged by one rule. With ``r = max(meet_min_px, w)`` (w = the drawing's stroke
 width):
 
@@ -47,8 +47,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from stages.evaluate.matching import match_one_to_one, prf1
+from stages.geometry import subdivide
 
-__all__ = ["TopologyParams", "Topology", "extract_topology", "compare_topology", "benchmark_gap_statistics"]
+__all__ = ["TopologyParams", "Topology", "curve_topology", "compare_topology", "benchmark_gap_statistics"]
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class TopologyParams:
 
 @dataclass
 class Topology:
-    """Result of :func:`extract_topology`.
+    """Result of :func:`curve_topology`.
 
     Attributes
     ----------
@@ -137,20 +138,6 @@ def _clean(curve) -> np.ndarray | None:
     return p if len(p) >= 2 else None
 
 
-def _resample(p: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points every <= ``step`` along the polyline (its vertices kept) and their arc lengths."""
-    seg = np.diff(p, axis=0)
-    seglen = np.hypot(seg[:, 0], seg[:, 1])
-    n = np.maximum(1, np.ceil(seglen / step)).astype(np.int64)
-    idx = np.repeat(np.arange(len(seg)), n)
-    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-    t = k / n[idx]
-    pts = np.vstack([p[idx] + t[:, None] * seg[idx], p[-1:]])
-    cum = np.r_[0.0, np.cumsum(seglen)]
-    arc = np.r_[cum[idx] + t * seglen[idx], cum[-1]]
-    return pts, arc
-
-
 def _runs(sorted_idx: np.ndarray, arc: np.ndarray, max_gap: float) -> list[np.ndarray]:
     """Split sorted sample indices of one curve into runs whose arc gaps are <= ``max_gap``."""
     if len(sorted_idx) == 0:
@@ -186,7 +173,7 @@ def _segment_crossings(a0, a1, b0, b1):
 
 # --------------------------------------------------------------------------------------------------
 
-def extract_topology(curves: Sequence, width: float, params: TopologyParams) -> Topology:
+def curve_topology(curves: Sequence, width: float, params: TopologyParams) -> Topology:
     """Free ends, continuations, junctions and defects of a set of curves.
 
     Parameters
@@ -210,7 +197,7 @@ def extract_topology(curves: Sequence, width: float, params: TopologyParams) -> 
 
     samples, arcs, owner = [], [], []
     for ci, p in enumerate(polys):
-        s, a = _resample(p, step)
+        s, a = subdivide(p, step)
         samples.append(s)
         arcs.append(a)
         owner.append(np.full(len(s), ci))
@@ -387,7 +374,7 @@ def compare_topology(output: Topology, gt: Topology, width: float, params: Topol
     Parameters
     ----------
     output, gt : Topology
-        From :func:`extract_topology` on the output curves and on the ground-truth strokes.
+        From :func:`curve_topology` on the output curves and on the ground-truth strokes.
     width : float
         Stroke width in pixels; the matching radius is ``max(match_min_px, width)``.
     params : TopologyParams

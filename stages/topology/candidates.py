@@ -21,13 +21,20 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
+from stages.geometry import arc_length, point_at_arc, turn_deg
 from stages.topology.allowed_paths import enumerate_allowed_paths
 from stages.topology.config import TopologyConfig
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
-from stages.topology.graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
 from stages.topology.key_vertices import find_key_vertices, snap_position
 from stages.topology.steiner import path_to_source, steiner_tree
+from stages.topology.work_graph import (
+    WorkGraph,
+    arc_motions,
+    build_work_graph,
+    near_singularity_only,
+    turn_table,
+)
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
 
@@ -277,18 +284,13 @@ def _branch(xy: np.ndarray, vs, i: int, step: int, probe: float) -> tuple[np.nda
     ``probe`` px of arc away, and the vertices passed within that arc (identifies the graph branch)."""
     idx = np.arange(i, len(vs)) if step > 0 else np.arange(i, -1, -1)
     pts = xy[idx]
-    s = np.r_[0.0, np.cumsum(np.hypot(*np.diff(pts, axis=0).T))]
+    s = arc_length(pts)
     if len(pts) < 2 or s[-1] <= 1e-9:
         return np.zeros(2), ()
     t = min(probe, s[-1])
-    q = np.array([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])])
+    q = point_at_arc(pts, s, t)
     d = q - pts[0]
     return d / max(np.hypot(*d), 1e-12), tuple(int(vs[j]) for j in idx[s <= t])
-
-
-def _turn_deg(d_in: np.ndarray, d_out: np.ndarray) -> float:
-    """Turn between arriving along ``d_in`` (pointing back, away from the joint) and leaving along ``d_out``."""
-    return float(np.degrees(np.arccos(np.clip(-(d_in @ d_out), -1.0, 1.0))))
 
 
 def straight_pass_through(raw: list[dict], ex: "_Extractor", conf: TopologyConfig) -> list[dict]:
@@ -330,9 +332,9 @@ def straight_pass_through(raw: list[dict], ex: "_Extractor", conf: TopologyConfi
                 continue
             i = vs.index(v)
             (d_in, key_in), (d_out, key_out) = _branch(xy, vs, i, -1, probe), _branch(xy, vs, i, 1, probe)
-            turn = _turn_deg(d_in, d_out)
+            turn = turn_deg(d_in, d_out)
             others = [e for key, e in branches.get(k, {}).items() if key not in (key_in, key_out)]
-            if turn > max_turn or any(min(_turn_deg(d_in, e), _turn_deg(-e, d_out)) < turn + margin
+            if turn > max_turn or any(min(turn_deg(d_in, e), turn_deg(-e, d_out)) < turn + margin
                                       for e in others):
                 ok = False
                 break
@@ -343,7 +345,7 @@ def straight_pass_through(raw: list[dict], ex: "_Extractor", conf: TopologyConfi
     return keep
 
 
-def extract_topology(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
+def candidate_paths(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
                      vertex_root, edges, points: np.ndarray, types: np.ndarray, vertex_flags=None) -> dict:
     """Candidate paths of one drawing.
 
