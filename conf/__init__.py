@@ -1,0 +1,8 @@
+"""The Hydra configs of polyvec (``pkg://conf``), one group per stage + runtime, train and bench.
+
+Hydra imports this package before it composes any of its configs; importing it registers the
+structured configs (:mod:`pipeline.schema`) that the app configs name as ``<group>_schema``, so every
+composition — the commands, ``hydra.compose`` in tests and scripts — checks the YAML against them.
+"""
+
+import pipeline.schema  # noqa: F401  (registers the <group>_schema structured configs)

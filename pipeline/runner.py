@@ -24,6 +24,7 @@ from typing import Any, Callable, Iterable
 
 from pipeline.registry import BY_NAME, StageSpec, active_stages
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, library_versions
+from stages.errors import InputError
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
@@ -88,6 +89,25 @@ class BatchResult:
     def keys(self, image: str) -> dict[str, str]:
         """Stage → key of the stored artifacts of one image."""
         return {s: r.key for s, r in self.results.get(image, {}).items() if r.status in ("computed", "cached")}
+
+
+@dataclass
+class RuntimeConfig:
+    """The ``runtime`` config group (``conf/runtime/local.yaml``), one field per key: where tasks run."""
+
+    cluster: str
+    workers: int
+    memory_limit: Any
+    scheduler_address: str | None
+    connect_timeout_s: float
+    until: str | None
+    progress: bool
+    pages: bool
+    debug: bool
+
+    def __post_init__(self) -> None:
+        if self.cluster not in ("auto", "local", "sync"):
+            raise InputError(f"runtime.cluster must be auto, local or sync, not {self.cluster!r}")
 
 
 # -- planning ----------------------------------------------------------------------------------
@@ -298,14 +318,14 @@ def get_client(runtime: dict):
     global _CLIENT, _CLIENT_SPEC
     from distributed import Client, LocalCluster
 
-    address = runtime.get("scheduler_address")
-    spec = (address, runtime.get("workers"), runtime.get("memory_limit"))
+    address = runtime["scheduler_address"]
+    spec = (address, runtime["workers"], runtime["memory_limit"])
     if _CLIENT is not None and _CLIENT_SPEC == spec and _CLIENT.status == "running":
         return _CLIENT
     close_client()
     if address:
         try:
-            client = Client(address, timeout=runtime.get("connect_timeout_s", 30))
+            client = Client(address, timeout=runtime["connect_timeout_s"])
         except (OSError, TimeoutError) as exc:
             raise ClusterError(f"cannot reach the dask scheduler at {address} ({type(exc).__name__})") from None
     else:
@@ -318,8 +338,8 @@ def get_client(runtime: dict):
         main_thread = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
         try:
-            cluster = LocalCluster(n_workers=int(runtime.get("workers", 2)), threads_per_worker=1, processes=True,
-                                   dashboard_address=":0", memory_limit=runtime.get("memory_limit", "auto"),
+            cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", memory_limit=runtime["memory_limit"],
                                    env=dict(THREAD_ENV), silence_logs=50)
         finally:
             if main_thread:
@@ -362,10 +382,14 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     -------
     BatchResult
     """
+    from pipeline.schema import validate  # it imports this module
+
+    validate(cfg, ["runtime"])
     runtime = stage_config(cfg, "runtime")
+    stages = active_stages(runtime["until"])
+    validate(cfg, [s.name for s in stages])  # every key present, none unknown, values in range
     store = store or ArtifactStore(cfg["store"]["path"])
     store.sweep_tmp()
-    stages = active_stages(runtime.get("until"))
     t0 = time.perf_counter()
     batch = BatchResult(stages=[s.name for s in stages])
     plans = plan(images, cfg, stages)
@@ -391,7 +415,7 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             _run_sync(pending, store.url, batch, report)
         else:
             client = get_client(runtime)
-            if runtime.get("scheduler_address"):
+            if runtime["scheduler_address"]:
                 check_store_reachable(client, store)
             _run_dask(pending, store.url, batch, report, client)
     batch.wall_s = time.perf_counter() - t0
@@ -407,7 +431,7 @@ def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     store: 14.9 s on a local cluster, 10.9 s in-process); with two images or more, and always with a
     ``scheduler_address``, it uses dask.
     """
-    mode = runtime.get("cluster", "local")
+    mode = runtime["cluster"]
     if mode != "auto":
         return mode
     if runtime.get("scheduler_address") or len(pending) > 1:

@@ -41,7 +41,7 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         if value is None:
             raise InputError(f"{where}: a value is required")
         if tp is bool and not isinstance(value, bool):
-            raise InputError(f"{where}: expected true or false, got {value!r}")
+            raise InputError(f"{where} must be true or false (got {value!r}; write {where}=true)")
         try:
             return _SCALARS[tp](value)
         except (TypeError, ValueError):

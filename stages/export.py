@@ -66,15 +66,60 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from stages.artifact import Artifact, unpack_ragged
+from stages.config import from_section
 from stages.errors import InputError
 from stages.geometry import arc_length, point_at_arc, turn_deg
 
 STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
 
 
-@dataclass(frozen=True)
-class ExportParams:
-    """The ``export`` config section (``conf/export/default.yaml``)."""
+@dataclass
+class CollapseConfig:
+    """``export.collapse``: contract links shorter than ~a stroke width between met ends."""
+
+    enabled: bool
+    max_px: float
+    max_widths: float
+
+
+@dataclass
+class JoinConfig:
+    """``export.join``: join curves continuing each other at junctions and synthetic ends."""
+
+    enabled: bool
+    max_turn_deg: float
+    tangent_px: float
+    margin_deg: float
+    same_branch_deg: float
+
+
+@dataclass
+class SpursConfig:
+    """``export.spurs``: attach short junction-to-endpoint curves to the piece they continue."""
+
+    enabled: bool
+    max_px: float
+    max_widths: float
+    max_turn_deg: float
+    near_px: float
+    by_drawn_valence: bool
+
+
+@dataclass
+class OvershootConfig:
+    """``export.overshoot``: extend ends at junctions over an ink overshoot no keypoint marks."""
+
+    enabled: bool
+    min_px: float
+    min_widths: float
+    max_px: float
+    clearance: float
+    max_widths: float
+
+
+@dataclass
+class ExportConfig:
+    """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
     stroke_width: float
     widths_from_graph: bool
@@ -82,67 +127,16 @@ class ExportParams:
     bezier: bool
     bezier_tolerance: float
     min_length_px: float
-    join: bool
-    join_max_turn_deg: float
-    join_tangent_px: float
-    join_margin_deg: float
-    join_same_branch_deg: float
-    spurs: bool
-    spur_max_px: float
-    spur_max_widths: float
-    spur_max_turn_deg: float
-    spur_near_px: float
-    spur_by_valence: bool
-    overshoot: bool
-    overshoot_min_px: float
-    overshoot_min_widths: float
-    overshoot_max_px: float
-    overshoot_max_widths: float
-    overshoot_clearance: float
-    collapse: bool
-    collapse_max_px: float
-    collapse_max_widths: float
+    collapse: CollapseConfig
+    join: JoinConfig
+    spurs: SpursConfig
+    overshoot: OvershootConfig
 
-    @classmethod
-    def from_cfg(cls, cfg: dict) -> "ExportParams":
-        """Build from the config dict; every key must be present."""
-        try:
-            p = cls(stroke_width=float(cfg["stroke_width"]), widths_from_graph=bool(cfg["widths_from_graph"]),
-                    precision=int(cfg["precision"]), bezier=_flag(cfg["bezier"], "export.bezier"),
-                    bezier_tolerance=float(cfg["bezier_tolerance"]),
-                    min_length_px=float(cfg["min_length_px"]), join=bool(cfg["join"]["enabled"]),
-                    join_max_turn_deg=float(cfg["join"]["max_turn_deg"]),
-                    join_tangent_px=float(cfg["join"]["tangent_px"]),
-                    join_margin_deg=float(cfg["join"]["margin_deg"]),
-                    join_same_branch_deg=float(cfg["join"]["same_branch_deg"]),
-                    spurs=bool(cfg["spurs"]["enabled"]), spur_max_px=float(cfg["spurs"]["max_px"]),
-                    spur_max_widths=float(cfg["spurs"]["max_widths"]),
-                    spur_max_turn_deg=float(cfg["spurs"]["max_turn_deg"]),
-                    spur_near_px=float(cfg["spurs"]["near_px"]),
-                    spur_by_valence=bool(cfg["spurs"]["by_drawn_valence"]),
-                    overshoot=bool(cfg["overshoot"]["enabled"]),
-                    overshoot_min_px=float(cfg["overshoot"]["min_px"]),
-                    overshoot_min_widths=float(cfg["overshoot"]["min_widths"]),
-                    overshoot_max_px=float(cfg["overshoot"]["max_px"]),
-                    overshoot_max_widths=float(cfg["overshoot"]["max_widths"]),
-                    overshoot_clearance=float(cfg["overshoot"]["clearance"]),
-                    collapse=bool(cfg["collapse"]["enabled"]),
-                    collapse_max_px=float(cfg["collapse"]["max_px"]),
-                    collapse_max_widths=float(cfg["collapse"]["max_widths"]))
-        except KeyError as e:
-            raise InputError(f"export config is missing key {e}") from None
-        if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
+    def __post_init__(self) -> None:
+        if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
             raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier_tolerance > 0")
-        if not 0 <= p.join_max_turn_deg <= 180 or p.join_tangent_px <= 0:
+        if not 0 <= self.join.max_turn_deg <= 180 or self.join.tangent_px <= 0:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
-        return p
-
-
-def _flag(value, name: str) -> bool:
-    """A true/false config value; anything else (``export.bezier.enabled``, the old spelling) is an error."""
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    raise InputError(f"{name} must be true or false (got {value!r}; write {name}=true)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -784,7 +778,7 @@ def _bezier_d(pieces: list[np.ndarray], precision: int) -> str:
     return "M " + f(pieces[0][0]) + "".join(" C " + " ".join(f(q) for q in c[1:]) for c in pieces)
 
 
-def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportParams) -> str:
+def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportConfig) -> str:
     """An SVG document with one black, unfilled ``<path>`` per curve.
 
     Parameters
@@ -795,7 +789,7 @@ def svg_document(width: int, height: int, curves: list[dict], ds: list[str], par
         With ``id`` and ``width`` (used when ``widths_from_graph``).
     ds : list of str
         Path data per curve.
-    params : ExportParams
+    params : ExportConfig
     """
     lines = ['<?xml version="1.0" encoding="UTF-8" standalone="no"?>',
              f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width}" height="{height}" '
@@ -827,7 +821,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Artifact
         data ``svg``, ``curves`` and (optional) ``bezier_svg``.
     """
-    params = ExportParams.from_cfg(cfg)
+    params = from_section(ExportConfig, cfg, "export")
     for name in ("prep", "topology", "flow", "select"):
         if name not in inputs:
             raise InputError(f"export stage needs the '{name}' artifact")
@@ -856,19 +850,19 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                        "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
                        "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
                        "width": float(np.mean(w)) if len(w) else None})
-    if params.collapse:
-        curves = collapse_short_links(curves, params.collapse_max_px, params.collapse_max_widths)
-    if params.join:
-        curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px,
-                                    params.join_margin_deg, params.join_same_branch_deg)
-    if params.spurs:
-        curves = attach_spurs(curves, params.spur_max_px, params.spur_max_widths, params.spur_max_turn_deg,
-                              params.join_tangent_px, params.spur_near_px, params.spur_by_valence)
+    if params.collapse.enabled:
+        curves = collapse_short_links(curves, params.collapse.max_px, params.collapse.max_widths)
+    if params.join.enabled:
+        curves = join_continuations(curves, params.join.max_turn_deg, params.join.tangent_px,
+                                    params.join.margin_deg, params.join.same_branch_deg)
+    if params.spurs.enabled:
+        curves = attach_spurs(curves, params.spurs.max_px, params.spurs.max_widths, params.spurs.max_turn_deg,
+                              params.join.tangent_px, params.spurs.near_px, params.spurs.by_drawn_valence)
     mask = prep.arrays.get("mask")
-    if params.overshoot and mask is not None:
-        curves = extend_overshoots(curves, np.asarray(mask, bool), params.join_tangent_px, params.overshoot_min_px,
-                                   params.overshoot_min_widths, params.overshoot_max_px,
-                                   params.overshoot_max_widths, params.overshoot_clearance)
+    if params.overshoot.enabled and mask is not None:
+        curves = extend_overshoots(curves, np.asarray(mask, bool), params.join.tangent_px, params.overshoot.min_px,
+                                   params.overshoot.min_widths, params.overshoot.max_px,
+                                   params.overshoot.max_widths, params.overshoot.clearance)
     # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
     # one point: `M x y L x y`), and has no tangent for the Bézier fit.
     curves = [c for c in curves if _length(c["points"]) >= params.min_length_px]

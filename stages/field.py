@@ -101,6 +101,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from stages.artifact import Artifact
+from stages.config import from_section
 from stages.errors import InputError
 
 STAGE_VERSION = "1"
@@ -112,7 +113,7 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
+@dataclass
 class FieldConfig:
     """The ``field`` config section (``conf/field/default.yaml``), one field per key."""
 
@@ -128,20 +129,6 @@ class FieldConfig:
     tie_tolerance: float
     tie_sigma: float
 
-    @classmethod
-    def from_dict(cls, cfg: dict) -> "FieldConfig":
-        names = set(cls.__dataclass_fields__)
-        missing = names - set(cfg)
-        unknown = set(cfg) - names
-        if missing or unknown:
-            raise InputError(f"field config: missing keys {sorted(missing)}, unknown keys {sorted(unknown)}")
-        return cls(alpha=float(cfg["alpha"]), beta=float(cfg["beta"]),
-                   gradient_cutoff=float(cfg["gradient_cutoff"]), cg_rtol=float(cfg["cg_rtol"]),
-                   cg_max_iterations=int(cfg["cg_max_iterations"]), warm_start=bool(cfg["warm_start"]),
-                   max_singularity_iterations=int(cfg["max_singularity_iterations"]),
-                   extension_radius=int(cfg["extension_radius"]),
-                   extension_scale=float(cfg["extension_scale"]),
-                   tie_tolerance=float(cfg["tie_tolerance"]), tie_sigma=float(cfg["tie_sigma"]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -602,7 +589,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         Arrays ``c0, c2, c0_ext, c2_ext`` complex64 (H, W), ``roots`` complex64 (H, W, 2),
         ``singular`` bool (H, W); data = solver statistics.
     """
-    conf = FieldConfig.from_dict(cfg)
+    conf = from_section(FieldConfig, cfg, "field")
     if "prep" not in inputs:
         raise InputError("field stage needs the 'prep' artifact")
     prep = inputs["prep"]

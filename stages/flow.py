@@ -101,6 +101,7 @@ import numba
 import numpy as np
 
 from stages.artifact import Artifact, pack_ragged
+from stages.config import from_section
 from stages.errors import InputError
 
 STAGE_VERSION = "2"
@@ -108,8 +109,27 @@ STAGE_VERSION = "2"
 _FM = {"contract", "arcp", "nsz", "afn"}
 
 
-@dataclass(frozen=True)
-class FlowParams:
+@dataclass
+class BarrierConfig:
+    """``flow.barrier``: the Eq. 5 barrier round the initial path (σ = width / sigma_scale ≥ sigma_min)."""
+
+    sigma_scale: float
+    sigma_min: float
+    spacing: float
+    cutoff: float
+
+
+@dataclass
+class StepScaleConfig:
+    """``flow.step_scale``: per-vertex time-step factor ``clip(d0 / d, min, max)``."""
+
+    d0: float
+    min: float
+    max: float
+
+
+@dataclass
+class FlowConfig:
     """The ``flow`` config section (``conf/flow/default.yaml``), one field per key."""
 
     iterations: int
@@ -118,49 +138,31 @@ class FlowParams:
     eps: float
     spacing: float
     resample_factor: float
-    sigma_scale: float
-    sigma_min: float
-    barrier_spacing: float
-    barrier_cutoff: float
-    step_d0: float
-    step_min: float
-    step_max: float
+    barrier: BarrierConfig
+    step_scale: StepScaleConfig
 
-    @classmethod
-    def from_cfg(cls, cfg: dict) -> "FlowParams":
-        """Build from the config dict; every key must be present (no hidden defaults)."""
-        try:
-            b = cfg["barrier"]
-            s = cfg["step_scale"]
-            p = cls(iterations=int(cfg["iterations"]), dt=float(cfg["dt"]), lam=float(cfg["lam"]),
-                    eps=float(cfg["eps"]), spacing=float(cfg["spacing"]),
-                    resample_factor=float(cfg["resample_factor"]),
-                    sigma_scale=float(b["sigma_scale"]), sigma_min=float(b["sigma_min"]),
-                    barrier_spacing=float(b["spacing"]), barrier_cutoff=float(b["cutoff"]),
-                    step_d0=float(s["d0"]), step_min=float(s["min"]), step_max=float(s["max"]))
-        except KeyError as e:
-            raise InputError(f"flow config is missing key {e}") from None
-        if p.iterations < 0 or p.dt <= 0 or p.lam < 0 or p.eps < 0 or p.spacing <= 0:
+    def __post_init__(self) -> None:
+        b, s = self.barrier, self.step_scale
+        if self.iterations < 0 or self.dt <= 0 or self.lam < 0 or self.eps < 0 or self.spacing <= 0:
             raise InputError("flow config: need iterations ≥ 0, dt > 0, lam ≥ 0, eps ≥ 0, spacing > 0")
-        if p.resample_factor <= 1 or p.sigma_scale <= 0 or p.sigma_min <= 0 or p.barrier_spacing <= 0:
+        if self.resample_factor <= 1 or b.sigma_scale <= 0 or b.sigma_min <= 0 or b.spacing <= 0:
             raise InputError("flow config: need resample_factor > 1, barrier sigma_scale, sigma_min, spacing > 0")
-        if not (0 < p.step_min <= p.step_max) or p.step_d0 <= 0:
+        if not (0 < s.min <= s.max) or s.d0 <= 0:
             raise InputError("flow config: need 0 < step_scale.min ≤ step_scale.max and d0 > 0")
-        return p
 
 
-def step_scale(d: np.ndarray, params: FlowParams) -> np.ndarray:
+def step_scale(d: np.ndarray, params: FlowConfig) -> np.ndarray:
     """Per-vertex time-step factor ``clip(d0 / d, min, max)`` (= the code's 2 if d < 15 else max(0.1, 30/d)).
 
     Parameters
     ----------
     d : numpy.ndarray
         Graph distance (px) to the nearest high-valence vertex or path end.
-    params : FlowParams
+    params : FlowConfig
     """
     d = np.asarray(d, dtype=np.float64)
     with np.errstate(divide="ignore"):
-        return np.clip(params.step_d0 / np.maximum(d, 0.0), params.step_min, params.step_max)
+        return np.clip(params.step_scale.d0 / np.maximum(d, 0.0), params.step_scale.min, params.step_scale.max)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,7 +247,7 @@ def _safe_radius(centres: np.ndarray, sigma: np.ndarray, coff: np.ndarray, cutof
 
 
 def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: list[np.ndarray],
-                  params: FlowParams) -> _Batch:
+                  params: FlowConfig) -> _Batch:
     """Resample every path and place its barrier centres.
 
     Parameters
@@ -255,7 +257,7 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     widths, interest : list of numpy.ndarray
         Per initial vertex: stroke width (px) and graph distance to the nearest high-valence
         vertex or path end (px).
-    params : FlowParams
+    params : FlowConfig
 
     Returns
     -------
@@ -286,7 +288,7 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     z[zoff[1:] - 1] = xy[off[1:] - 1, 0] + 1j * xy[off[1:] - 1, 1]
 
     # Barrier centres: uniform in u = ∫ ds/σ, `barrier_spacing` apart.
-    sig = np.maximum(w / params.sigma_scale, params.sigma_min)
+    sig = np.maximum(w / params.barrier.sigma_scale, params.barrier.sigma_min)
     du = np.zeros(len(xy))
     if len(xy) > 1:
         du[1:] = (s[1:] - s[:-1]) * 0.5 * (1.0 / sig[1:] + 1.0 / sig[:-1])
@@ -295,7 +297,7 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     u = u - np.repeat(u[off[:-1]], counts)
     utot = u[off[1:] - 1]
     gu, ubase = _global_param(u, off, utot)
-    nc = np.maximum(np.ceil(utot / params.barrier_spacing).astype(np.int64), 1) + 1
+    nc = np.maximum(np.ceil(utot / params.barrier.spacing).astype(np.int64), 1) + 1
     coff = np.zeros(npath + 1, dtype=np.int64)
     np.cumsum(nc, out=coff[1:])
     cpath = np.repeat(np.arange(npath), nc)
@@ -304,7 +306,7 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     sc = np.interp(uc + ubase[cpath], gu, s)           # arc length of each centre
     gcs = sc + base[cpath]
     centres = np.interp(gcs, gs, xy[:, 0]) + 1j * np.interp(gcs, gs, xy[:, 1])
-    csig = np.maximum(np.interp(gcs, gs, w) / params.sigma_scale, params.sigma_min)
+    csig = np.maximum(np.interp(gcs, gs, w) / params.barrier.sigma_scale, params.barrier.sigma_min)
     cdist = np.interp(gcs, gs, dd)
 
     # Home centre of each edge midpoint: nearest in arc length (the kernel refines it spatially).
@@ -316,9 +318,9 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     hi = np.clip(pos, coff[:-1][vpath], coff[1:][vpath] - 1)
     pick = np.where(np.abs(key_c[hi] - key_m) < np.abs(key_c[lo] - key_m), hi, lo)
     home = (pick - coff[:-1][vpath]).astype(np.int64)
-    window = np.ceil(params.barrier_cutoff / params.barrier_spacing).astype(np.int64) + 2
+    window = np.ceil(params.barrier.cutoff / params.barrier.spacing).astype(np.int64) + 2
     window = np.full(npath, window, dtype=np.int64)
-    rho = _safe_radius(centres, csig, coff, params.barrier_cutoff)
+    rho = _safe_radius(centres, csig, coff, params.barrier.cutoff)
     return _Batch(z=z.astype(np.complex128), zoff=zoff, centres=centres.astype(np.complex128), sigma=csig,
                   rho2=rho * rho, dist=cdist, coff=coff, home=home, window=window)
 
@@ -762,7 +764,7 @@ class FlowResult:
 
 
 def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], widths: list[np.ndarray],
-                    interest: list[np.ndarray], params: FlowParams) -> FlowResult:
+                    interest: list[np.ndarray], params: FlowConfig) -> FlowResult:
     """Flow every path to the frame field (all paths in one batched, compiled call).
 
     Parameters
@@ -775,7 +777,7 @@ def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], width
         Stroke width per initial vertex (px), for the barrier's σ = width / sigma_scale.
     interest : list of numpy.ndarray
         Graph distance per initial vertex to the nearest high-valence vertex or path end (px).
-    params : FlowParams
+    params : FlowConfig
 
     Returns
     -------
@@ -798,8 +800,8 @@ def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], width
     try:
         _flow_kernel(order, batch.z, batch.zoff, batch.centres, batch.sigma, batch.rho2, batch.dist, batch.coff,
                      batch.home, batch.window, _pack_field(c0, c2), params.iterations, params.dt, params.lam,
-                     params.eps, params.resample_factor, params.barrier_cutoff ** 2, params.step_d0,
-                     params.step_min, params.step_max, e0, e1, nres, nrej, failed)
+                     params.eps, params.resample_factor, params.barrier.cutoff ** 2, params.step_scale.d0,
+                     params.step_scale.min, params.step_scale.max, e0, e1, nres, nrej, failed)
     finally:
         numba.set_parallel_chunksize(old_chunk)
     curves = [np.stack([batch.z[a:b].real, batch.z[a:b].imag], axis=1)
@@ -849,7 +851,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Parameters
     ----------
     cfg : dict
-        The ``flow`` config section (keys of :class:`FlowParams`).
+        The ``flow`` config section (keys of :class:`FlowConfig`).
     prep, field, graph, topology : Artifact
         ``field`` supplies ``c0_ext``/``c2_ext``; ``topology`` the paths (``xy``, ``widths``,
         ``interest_dist``); ``prep`` the image size.  ``graph`` is not read (widths and distances
@@ -862,7 +864,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         ``energies_initial`` (Eq. 6a, per path, topology order), ``resamples``, ``failed`` (ids),
         ``n_vertices``.
     """
-    params = FlowParams.from_cfg(cfg)
+    params = from_section(FlowConfig, cfg, "flow")
     for name in ("prep", "field", "topology"):
         if name not in inputs:
             raise InputError(f"flow stage needs the '{name}' artifact")

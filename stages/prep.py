@@ -30,16 +30,42 @@ from __future__ import annotations
 
 import io
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from stages.artifact import Artifact
+from stages.config import from_section
 from stages.errors import InputError
 
 STAGE_VERSION = "3"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank
 
 _EIGHT = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]])
+
+
+@dataclass
+class ContrastConfig:
+    """``prep.contrast``: percentile stretch of the grey levels (darkest ink → black, paper → white)."""
+
+    enabled: bool
+    low_percentile: float
+    high_percentile: float
+    min_contrast: float
+
+
+@dataclass
+class PrepConfig:
+    """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
+
+    max_pixels: int
+    threshold: float
+    repair_passes: int
+    repair_neighbours: int
+    repair_max_grey: float
+    min_component_px: int
+    max_ink_fraction: float
+    contrast: ContrastConfig
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:
@@ -203,7 +229,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     Parameters
     ----------
     cfg : dict
-        The ``prep`` config section.
+        The ``prep`` config section (keys of :class:`PrepConfig`).
     image_bytes : bytes
         Content of the image file.
     image_name : str
@@ -214,20 +240,19 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     Artifact
         ``grey`` float32 (H, W) and ``mask`` bool (H, W); see stages/INTERFACES.md.
     """
-    grey, mode = decode_image(image_bytes, int(cfg["max_pixels"]))
-    if cfg["contrast"]["enabled"]:
-        grey = normalise_contrast(grey, cfg["contrast"]["low_percentile"], cfg["contrast"]["high_percentile"],
-                                  cfg["contrast"]["min_contrast"])
+    c = from_section(PrepConfig, cfg, "prep")
+    grey, mode = decode_image(image_bytes, c.max_pixels)
+    if c.contrast.enabled:
+        grey = normalise_contrast(grey, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
     else:
-        if grey.max() - grey.min() < cfg["contrast"]["min_contrast"]:
+        if grey.max() - grey.min() < c.contrast.min_contrast:
             raise InputError("blank image: no ink found (uniform grey levels)")
         grey = grey.astype(np.float32)
-    mask = narrow_band(grey, cfg["threshold"], cfg["repair_passes"], cfg["repair_neighbours"],
-                       cfg["min_component_px"], float(cfg.get("repair_max_grey", 1.0)))
+    mask = narrow_band(grey, c.threshold, c.repair_passes, c.repair_neighbours, c.min_component_px, c.repair_max_grey)
     ink = float(mask.mean())
     if ink == 0.0:
         raise InputError("blank image: no pixel darker than prep.threshold")
-    if ink > cfg["max_ink_fraction"]:
+    if ink > c.max_ink_fraction:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     h, w = grey.shape
     return Artifact(arrays={"grey": grey, "mask": mask},

@@ -55,12 +55,13 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from stages.artifact import Artifact, unpack_ragged
+from stages.config import from_section
 from stages.errors import InputError
 
 STAGE_VERSION = "1"
@@ -69,38 +70,51 @@ STAGE_VERSION = "1"
 _TYPE_NAMES = {1: "endpoint", 5: "corner", 3: "junction"}
 
 
-@dataclass(frozen=True)
-class SelectParams:
-    """The ``select`` config section (``conf/select/default.yaml``)."""
+@dataclass
+class ValenceConfig:
+    """``select.valence``: required valence per keypoint type (paper §4.3: ≥ 1 / 2 / 3)."""
+
+    endpoint: int
+    corner: int
+    junction: int
+
+
+@dataclass
+class MaxEndsConfig:
+    """``select.max_ends``: soft upper bound on the curve ends at a keypoint of each type (None = none)."""
+
+    endpoint: int | None
+    corner: int | None
+    junction: int | None
+
+
+@dataclass
+class SelectConfig:
+    """The ``select`` config section (``conf/select/default.yaml``), one field per key."""
 
     time_limit: float
     threads: int
     gap_rel: float
     cap_valence: bool
-    cap_branches: bool = True
-    valence: dict = field(default_factory=dict)
-    max_ends: dict = field(default_factory=dict)
-    excess_penalty: float = 0.0
-    curve_cost: float = 0.0
+    cap_branches: bool
+    valence: ValenceConfig
+    max_ends: MaxEndsConfig
+    excess_penalty: float
+    curve_cost: float
 
-    @classmethod
-    def from_cfg(cls, cfg: dict) -> "SelectParams":
-        """Build from the config dict; every key must be present."""
-        try:
-            v = cfg["valence"]
-            m = cfg["max_ends"]
-            p = cls(time_limit=float(cfg["time_limit"]), threads=int(cfg["threads"]),
-                    gap_rel=float(cfg["gap_rel"]), cap_valence=bool(cfg["cap_valence"]),
-                    cap_branches=bool(cfg["cap_branches"]),
-                    valence={t: int(v[name]) for t, name in _TYPE_NAMES.items()},
-                    max_ends={t: int(m[name]) for t, name in _TYPE_NAMES.items() if m.get(name) is not None},
-                    excess_penalty=float(cfg["excess_penalty"]), curve_cost=float(cfg["curve_cost"]))
-        except KeyError as e:
-            raise InputError(f"select config is missing key {e}") from None
-        if p.time_limit <= 0 or p.threads < 1 or p.gap_rel < 0 or p.excess_penalty < 0 or p.curve_cost < 0:
+    def __post_init__(self) -> None:
+        if self.time_limit <= 0 or self.threads < 1 or self.gap_rel < 0 or self.excess_penalty < 0 or self.curve_cost < 0:
             raise InputError("select config: need time_limit > 0, threads ≥ 1, gap_rel ≥ 0, excess_penalty ≥ 0, "
                              "curve_cost ≥ 0")
-        return p
+
+    def valence_by_type(self) -> dict[int, int]:
+        """Required valence by keypoint type code."""
+        return {t: getattr(self.valence, name) for t, name in _TYPE_NAMES.items()}
+
+    def max_ends_by_type(self) -> dict[int, int]:
+        """Upper bound on curve ends by keypoint type code, for the types that have one."""
+        return {t: getattr(self.max_ends, name) for t, name in _TYPE_NAMES.items()
+                if getattr(self.max_ends, name) is not None}
 
 
 @dataclass
@@ -140,7 +154,7 @@ class SelectionProblem:
 
 
 def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarray,
-                  keypoint_types: dict[int, int], params: SelectParams,
+                  keypoint_types: dict[int, int], params: SelectConfig,
                   branches: dict[int, int] | None = None) -> SelectionProblem:
     """Assemble valence and coverage constraints.
 
@@ -154,7 +168,7 @@ def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarra
         (P,) costs.
     keypoint_types : dict of int to int
         Keypoint id → type code (1/3/5); keypoints of other types are not constrained.
-    params : SelectParams
+    params : SelectConfig
     branches : dict of int to int, optional
         Keypoint id → number of covering-subgraph branches leaving it (topology
         ``keypoint_branches``); the required valence is capped by it too.
@@ -177,25 +191,26 @@ def build_problem(paths: list[dict], coverage: list[np.ndarray], cost: np.ndarra
                 rows += [int(k), int(k)]
                 cols += [j, j]
                 thr += [True, True]
-    kps = np.array(sorted({k for k in rows if keypoint_types.get(k) in params.valence}), np.int64)
+    valence, max_ends = params.valence_by_type(), params.max_ends_by_type()
+    kps = np.array(sorted({k for k in rows if keypoint_types.get(k) in valence}), np.int64)
     index = {int(k): i for i, k in enumerate(kps)}
     # A path running through an *endpoint* is another stroke passing by: it gives the endpoint no valence.
     keep = [i for i, k in enumerate(rows) if k in index and not (thr[i] and keypoint_types[k] == 1)]
     a = sp.csr_matrix((np.ones(len(keep)), ([index[rows[i]] for i in keep], [cols[i] for i in keep])),
                       shape=(len(kps), npath))
     a.sum_duplicates()
-    need = np.array([params.valence[keypoint_types[int(k)]] for k in kps], np.float64)
+    need = np.array([valence[keypoint_types[int(k)]] for k in kps], np.float64)
     available = np.asarray(a.sum(axis=1)).ravel()
     branch = np.array([branches.get(int(k), np.inf) if params.cap_branches else np.inf for k in kps], np.float64)
     capped = np.minimum(np.minimum(need, available), branch)
     # Soft upper bounds on the curve ends at endpoints and corners.
-    ek = np.array([k for k in kps if keypoint_types[int(k)] in params.max_ends], np.int64)
+    ek = np.array([k for k in kps if keypoint_types[int(k)] in max_ends], np.int64)
     eindex = {int(k): i for i, k in enumerate(ek)}
     ekeep = [i for i, k in enumerate(rows) if k in eindex and not thr[i]]
     ends = sp.csr_matrix((np.ones(len(ekeep)), ([eindex[rows[i]] for i in ekeep], [cols[i] for i in ekeep])),
                          shape=(len(ek), npath))
     ends.sum_duplicates()
-    ends_max = np.array([params.max_ends[keypoint_types[int(k)]] for k in ek], np.float64)
+    ends_max = np.array([max_ends[keypoint_types[int(k)]] for k in ek], np.float64)
 
     # Coverage: pixel → set of covering paths; one row per distinct set.
     counts = np.array([len(c) for c in coverage], np.int64)
@@ -279,7 +294,7 @@ def greedy_selection(problem: SelectionProblem) -> np.ndarray:
     return x
 
 
-def solve_mip(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarray | None, str, float | None]:
+def solve_mip(problem: SelectionProblem, params: SelectConfig) -> tuple[np.ndarray | None, str, float | None]:
     """Solve the binary program with CBC.
 
     Returns
@@ -339,7 +354,7 @@ def solve_mip(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarr
     return None, "no_solution", None
 
 
-def select_paths(problem: SelectionProblem, params: SelectParams) -> tuple[np.ndarray, str, float]:
+def select_paths(problem: SelectionProblem, params: SelectConfig) -> tuple[np.ndarray, str, float]:
     """MIP with the documented fallback; returns ``(chosen, status, objective)``."""
     if len(problem.cost) == 0:
         return np.zeros(0, bool), "empty", 0.0
@@ -368,7 +383,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Artifact
         data ``chosen`` (path ids), ``status``, ``objective``, ``counts`` (variables, constraints).
     """
-    params = SelectParams.from_cfg(cfg)
+    params = from_section(SelectConfig, cfg, "select")
     for name in ("topology", "flow"):
         if name not in inputs:
             raise InputError(f"select stage needs the '{name}' artifact")

@@ -49,11 +49,12 @@ The artifact follows stages/INTERFACES.md "graph"; :func:`render_graph` draws it
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from stages.artifact import Artifact
+from stages.config import from_section
 from stages.errors import InputError
 from stages.graph import cleanup
 from stages.graph.cross_section import RawGraph, build_cross_sections, streamline_edges
@@ -65,16 +66,7 @@ STAGE_VERSION = "3"  # 3: narrow loop caps closed (cleanup.close_loop_caps)
 __all__ = ["STAGE_VERSION", "GraphConfig", "run", "build_graph", "render_graph"]
 
 
-def _section_from(cls, cfg: dict, where: str):
-    names = {f.name for f in fields(cls)}
-    missing, unknown = names - set(cfg), set(cfg) - names
-    if missing or unknown:
-        raise InputError(f"graph config {where}: missing keys {sorted(missing)}, unknown keys {sorted(unknown)}")
-    cast = {"float": float, "int": int, "bool": bool}
-    return cls(**{f.name: cast[str(f.type)](cfg[f.name]) for f in fields(cls)})
-
-
-@dataclass(frozen=True)
+@dataclass
 class TraceConfig:
     """``graph.trace``: streamline tracing (see :func:`stages.graph.trace.trace_streamlines`)."""
 
@@ -86,7 +78,7 @@ class TraceConfig:
     tie: float
 
 
-@dataclass(frozen=True)
+@dataclass
 class SectionConfig:
     """``graph.sections``: cross-sections (see :func:`stages.graph.cross_section.build_cross_sections`)."""
 
@@ -99,7 +91,7 @@ class SectionConfig:
     lane_pad: float
 
 
-@dataclass(frozen=True)
+@dataclass
 class CleanupConfig:
     """``graph.cleanup``: see :mod:`stages.graph.cleanup`."""
 
@@ -119,7 +111,7 @@ class CleanupConfig:
     close_caps_min_hops: int
 
 
-@dataclass(frozen=True)
+@dataclass
 class GraphConfig:
     """The ``graph`` config section (``conf/graph/default.yaml``), one field per key."""
 
@@ -129,16 +121,6 @@ class GraphConfig:
     width_smoothing: float
     store_every: int
 
-    @classmethod
-    def from_dict(cls, cfg: dict) -> "GraphConfig":
-        top = {"trace", "sections", "cleanup", "width_smoothing", "store_every"}
-        missing, unknown = top - set(cfg), set(cfg) - top
-        if missing or unknown:
-            raise InputError(f"graph config: missing keys {sorted(missing)}, unknown keys {sorted(unknown)}")
-        return cls(trace=_section_from(TraceConfig, dict(cfg["trace"]), "trace"),
-                   sections=_section_from(SectionConfig, dict(cfg["sections"]), "sections"),
-                   cleanup=_section_from(CleanupConfig, dict(cfg["cleanup"]), "cleanup"),
-                   width_smoothing=float(cfg["width_smoothing"]), store_every=max(1, int(cfg["store_every"])))
 
 
 def _flag_singular_curve_ends(raw: RawGraph, lines: Streamlines, reach: float) -> np.ndarray:
@@ -287,7 +269,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
 
     # streamlines, subsampled for storage (every n-th sample and the last one of each curve)
     local = np.arange(len(lines.xy)) - lines.start[lines.curve]
-    take = (local % conf.store_every == 0) | (local == lines.length[lines.curve] - 1)
+    take = (local % max(1, conf.store_every) == 0) | (local == lines.length[lines.curve] - 1)
     s_xy = lines.xy[take].astype(np.float32)
     s_off = np.zeros(len(lines.start) + 1, np.int64)
     np.cumsum(np.bincount(lines.curve[take], minlength=len(lines.start)), out=s_off[1:])
@@ -330,7 +312,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Artifact
         See stages/INTERFACES.md "graph".
     """
-    conf = GraphConfig.from_dict(cfg)
+    conf = from_section(GraphConfig, cfg, "graph")
     for name in ("prep", "field"):
         if name not in inputs:
             raise InputError(f"graph stage needs the '{name}' artifact")

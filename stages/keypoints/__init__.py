@@ -28,11 +28,13 @@ the main network's, on which the typing perceptron is trained. It costs a second
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from stages.artifact import Artifact
+from stages.config import from_section
 from stages.errors import InputError
 from stages.keypoints.labels import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
@@ -135,13 +137,36 @@ def load_type_classifier(path: str | Path | None = None) -> TypeClassifier:
     return _TYPE_CLASSIFIERS[str(p)]
 
 
+@dataclass
+class KeypointsConfig:
+    """The ``keypoints`` config section (``conf/keypoints/default.yaml``), one field per key."""
+
+    weights: str
+    detection_ensemble: list[str]
+    typing: str
+    type_classifier: str | None
+    threshold: float
+    min_distance: int
+    restrict_to_band: bool
+    band_dilation: int
+    subpixel: bool
+    contrast_floor: float
+    tile_size: int
+    tile_overlap: int
+    torch_threads: int
+
+    def __post_init__(self) -> None:
+        if self.typing not in ("valence", "argmax"):
+            raise InputError(f"typing must be 'valence' or 'argmax', got {self.typing!r}")
+
+
 def run(cfg: dict, prep: Artifact) -> Artifact:
     """Detect and classify keypoints.
 
     Parameters
     ----------
     cfg : dict
-        The ``keypoints`` config section (conf/keypoints/default.yaml).
+        The ``keypoints`` config section (keys of :class:`KeypointsConfig`).
     prep : Artifact
         The prep artifact (``grey`` float32 (H, W), 1 = white; ``mask`` bool (H, W) narrow band).
 
@@ -156,17 +181,16 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
 
     from stages.keypoints.inference import network_input, predict_heatmaps
 
-    if cfg["typing"] not in ("valence", "argmax"):
-        raise InputError(f"typing must be 'valence' or 'argmax', got {cfg['typing']!r}")
-    torch.set_num_threads(int(cfg["torch_threads"]))
+    c = from_section(KeypointsConfig, cfg, "keypoints")
+    torch.set_num_threads(c.torch_threads)
     grey = np.asarray(prep["grey"], np.float32)
     if grey.ndim != 2 or min(grey.shape) < 1:
         raise InputError(f"keypoints: expected a 2-D grey image, got shape {grey.shape}")
-    model, name = load_model(cfg["weights"])
-    x = network_input(grey, float(cfg["contrast_floor"]))
-    tiles = int(cfg["tile_size"]), int(cfg["tile_overlap"])
+    model, name = load_model(c.weights)
+    x = network_input(grey, c.contrast_floor)
+    tiles = c.tile_size, c.tile_overlap
     heatmaps = predict_heatmaps(model, x, *tiles)
-    ensemble = list(cfg.get("detection_ensemble") or [])
+    ensemble = list(c.detection_ensemble)
     if ensemble:
         # Detection ensemble: H1 is the mean over the networks; the class maps (H2..H4), which the
         # typing perceptron was trained on, stay the main network's.

@@ -96,9 +96,10 @@ from __future__ import annotations
 import numpy as np
 
 from stages.artifact import Artifact, pack_ragged
+from stages.config import from_section
 from stages.errors import InputError
-from stages.topology.config import TopologyConfig
 from stages.topology.candidates import candidate_paths
+from stages.topology.config import TopologyConfig
 from stages.topology.topology_picture import render_topology
 
 STAGE_VERSION = "4"
@@ -131,7 +132,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         ``coverage`` + ``coverage_offsets`` (flat pixel indices per path) and ``steiner_segments``
         (S, 4) ``[x0, y0, x1, y1]`` for rendering.
     """
-    conf = TopologyConfig.from_dict(cfg)
+    conf = from_section(TopologyConfig, cfg, "topology")
     if "keypoint_edits" in inputs:  # the engine's input: the detector's keypoints after the user's edits
         inputs["keypoints"] = inputs.pop("keypoint_edits")
     missing = [n for n in ("prep", "field", "graph", "keypoints") if n not in inputs]

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from stages.errors import InputError
 
 
-@dataclass(frozen=True)
+@dataclass
 class TopologyConfig:
     """See ``conf/topology/default.yaml`` for the meaning and origin of every value."""
 
@@ -35,18 +35,8 @@ class TopologyConfig:
     max_enumeration_steps: int
     min_component_vertices: int
 
-    @classmethod
-    def from_dict(cls, cfg: dict) -> "TopologyConfig":
-        """Build from the stage's config section; every key is required, unknown keys are errors."""
-        names = {f.name: f.type for f in fields(cls)}
-        missing = sorted(set(names) - set(cfg))
-        extra = sorted(set(cfg) - set(names))
-        if missing or extra:
-            raise InputError(f"topology config: missing keys {missing}, unknown keys {extra}")
-        casts = {"float": float, "int": int, "bool": bool, "str": str}
-        conf = cls(**{k: casts[str(t)](cfg[k]) for k, t in names.items()})
-        if conf.steiner_method not in ("mehlhorn", "kou"):
-            raise InputError(f"topology config: steiner_method must be 'mehlhorn' or 'kou', not {conf.steiner_method!r}")
-        if conf.min_new_vertices < 1 or conf.robust_min_new_vertices < 1:
+    def __post_init__(self) -> None:
+        if self.steiner_method not in ("mehlhorn", "kou"):
+            raise InputError(f"topology config: steiner_method must be 'mehlhorn' or 'kou', not {self.steiner_method!r}")
+        if self.min_new_vertices < 1 or self.robust_min_new_vertices < 1:
             raise InputError("topology config: min_new_vertices and robust_min_new_vertices must be ≥ 1")
-        return conf

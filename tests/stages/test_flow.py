@@ -18,6 +18,7 @@ from scipy import ndimage as ndi
 
 from stages import flow, synthetic
 from stages.artifact import Artifact, unpack_ragged
+from stages.config import from_section
 from stages.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -81,10 +82,10 @@ def noisy_path(a, b, n=45, noise=0.5, seed=0):
     return a + t[:, None] * (b - a) + off[:, None] * nrm, nrm, t * np.linalg.norm(b - a)
 
 
-def params(**over) -> flow.FlowParams:
+def params(**over) -> flow.FlowConfig:
     cfg = json.loads(json.dumps(CFG))
     cfg.update(over)
-    return flow.FlowParams.from_cfg(cfg)
+    return from_section(flow.FlowConfig, cfg, "flow")
 
 
 def _run_one(c0, c2, xy, width=3.0, interest=None, **over):
@@ -143,11 +144,11 @@ def test_discrete_gradient_is_the_derivative_of_the_reported_energy():
     fld = flow._pack_field(c0, c2)
     cen = np.stack([batch.centres.real, batch.centres.imag], 1)
     grad = flow._discrete_gradient(z, len(z), fld, batch.centres, batch.sigma, batch.rho2, 0, len(cen),
-                                   batch.window[0], p.barrier_cutoff ** 2, p.lam, p.eps, batch.home.copy())
+                                   batch.window[0], p.barrier.cutoff ** 2, p.lam, p.eps, batch.home.copy())
 
     def energy(zz):
         return flow.path_energy(c0, c2, np.stack([zz.real, zz.imag], 1), cen, batch.sigma, p.lam, p.eps,
-                                p.barrier_cutoff)
+                                p.barrier.cutoff)
 
     h = 1e-6
     fd = np.zeros(len(z), complex)
@@ -173,7 +174,7 @@ def test_safe_radius_guarantees_the_barrier_is_zero():
     pts = cen[k] + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
     d2 = ((pts[:, None] - cen[None]) ** 2).sum(-1)
     s2 = batch.sigma[None] ** 2
-    s = np.where(d2 < p.barrier_cutoff ** 2 * s2, np.exp(-0.5 * d2 / s2), 0).sum(1)
+    s = np.where(d2 < p.barrier.cutoff ** 2 * s2, np.exp(-0.5 * d2 / s2), 0).sum(1)
     assert s.min() >= 1.0
 
 
@@ -187,7 +188,7 @@ def test_barrier_centres_are_independent_of_input_density():
         cen = np.stack([batch.centres.real, batch.centres.imag], 1)
         mid = 0.5 * (a + b)
         s = np.exp(-0.5 * ((cen - mid) ** 2).sum(1) / batch.sigma ** 2).sum()
-        assert s == pytest.approx(np.sqrt(2 * np.pi) / p.barrier_spacing, rel=0.02)
+        assert s == pytest.approx(np.sqrt(2 * np.pi) / p.barrier.spacing, rel=0.02)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,7 +209,7 @@ def test_flow_lowers_energy_keeps_endpoints_and_reports_eq6a():
     batch = flow.prepare_paths([xy0], [np.full(len(xy0), 3.0)], [np.zeros(len(xy0))], params())
     cen = np.stack([batch.centres.real, batch.centres.imag], 1)
     p = params()
-    ref = flow.path_energy(c0, c2, cv, cen, batch.sigma, p.lam, p.eps, p.barrier_cutoff)
+    ref = flow.path_energy(c0, c2, cv, cen, batch.sigma, p.lam, p.eps, p.barrier.cutoff)
     assert res.energies[0] == pytest.approx(ref, rel=1e-9)
     assert res.failed[0] == 0
 

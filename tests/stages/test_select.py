@@ -11,6 +11,7 @@ import yaml
 
 from stages import select
 from stages.artifact import Artifact, pack_ragged
+from stages.config import from_section
 from stages.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -84,7 +85,7 @@ def test_a_stroke_passing_an_endpoint_does_not_end_there():
 
 
 def test_corner_ends_beyond_two_are_charged_and_branches_cap_junctions():
-    p = select.SelectParams.from_cfg({**CFG, "cap_branches": True})
+    p = from_section(select.SelectConfig, {**CFG, "cap_branches": True}, "select")
     paths = [{"end_keypoints": [0, 1]}, {"end_keypoints": [1, 2]}, {"end_keypoints": [1, 3]},
              {"end_keypoints": [4, 5], "through_keypoints": [6]}, {"end_keypoints": [7, 6]}]
     types = {0: 1, 1: 5, 2: 1, 3: 1, 4: 1, 5: 1, 6: 3, 7: 1}
@@ -119,7 +120,7 @@ def test_every_covered_pixel_stays_covered():
 
 
 def test_identical_pixel_sets_give_one_constraint():
-    p = select.SelectParams.from_cfg(CFG)
+    p = from_section(select.SelectConfig, CFG, "select")
     prob = select.build_problem([{"end_keypoints": [-1, -1]}] * 3,
                                 [np.arange(0, 10), np.arange(5, 10), np.arange(5, 12)], np.ones(3), {}, p)
     # Pixel sets: {0}: 0-4, {0,1,2}: 5-9, {2}: 10-11.
@@ -157,7 +158,7 @@ def test_a_violating_solver_answer_is_not_trusted(monkeypatch):
 
 def test_greedy_fallback_is_valid_and_minimal():
     rng = np.random.default_rng(3)
-    p = select.SelectParams.from_cfg(CFG)
+    p = from_section(select.SelectConfig, CFG, "select")
     paths = [{"end_keypoints": [int(a), int(b)]} for a, b in rng.integers(0, 6, (20, 2))]
     cov = [np.unique(rng.integers(0, 100, 30)) for _ in range(20)]
     prob = select.build_problem(paths, cov, rng.uniform(1, 10, 20), {k: [1, 3, 5][k % 3] for k in range(6)}, p)

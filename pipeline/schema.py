@@ -1,0 +1,58 @@
+"""Structured configs: every config group is the dataclass its code reads, registered with Hydra.
+
+Each stage declares its parameters as one dataclass (``stages.<stage>.<Stage>Config``, fields without
+defaults: the values live in ``conf/<stage>/default.yaml`` only). Importing this module registers each
+one in Hydra's ConfigStore as ``<group>_schema``, and the app configs (``conf/config.yaml``,
+``train_app.yaml``) put it first in the group, so composing the YAML onto it checks every key and type:
+an unknown key (in a file or an override) or a value of the wrong type is an error at start-up, and a
+key the file lacks is reported by :func:`validate`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+
+from pipeline.runner import RuntimeConfig, stage_config
+from stages.config import from_section
+from stages.export import ExportConfig
+from stages.field import FieldConfig
+from stages.flow import FlowConfig
+from stages.graph import GraphConfig
+from stages.keypoint_edits import KeypointEditsConfig
+from stages.keypoints import KeypointsConfig
+from stages.prep import PrepConfig
+from stages.select import SelectConfig
+from stages.topology import TopologyConfig
+
+#: config group → the dataclass that mirrors it
+SCHEMAS: dict[str, type] = {
+    "prep": PrepConfig, "keypoints": KeypointsConfig, "keypoint_edits": KeypointEditsConfig,
+    "field": FieldConfig, "graph": GraphConfig, "topology": TopologyConfig, "flow": FlowConfig,
+    "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig,
+}
+
+
+def register() -> None:
+    """Store every schema in Hydra's ConfigStore as ``<group>_schema`` (idempotent)."""
+    cs = ConfigStore.instance()
+    for group, cls in SCHEMAS.items():
+        cs.store(name=f"{group}_schema", node=cls)
+
+
+def validate(cfg: Any, groups: list[str] | None = None) -> None:
+    """Build the dataclass of every group present in ``cfg`` (all of :data:`SCHEMAS` by default).
+
+    Raises
+    ------
+    stages.errors.InputError
+        On a missing, unknown or ill-typed key, or a value out of its range.
+    """
+    for group in groups if groups is not None else list(SCHEMAS):
+        section = stage_config(cfg, group)
+        if section:
+            from_section(SCHEMAS[group], section, group)
+
+
+register()
