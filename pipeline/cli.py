@@ -281,7 +281,7 @@ def announce_edits(images: list[Path], cfg: DictConfig, console) -> None:
 
 
 # Modules whose numba kernels are compiled on first use and cached on disk (``@njit(cache=True)``).
-_KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"), "flow": ("stages/flow.py",)}
+_KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"), "flow": ("stages/flow/kernel.py",)}
 
 
 def kernels_uncompiled(stages: list[str]) -> bool:

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["arc_length", "bilinear", "point_at_arc", "resample_uniform", "segment_in_band", "subdivide",
-           "turn_deg"]
+__all__ = ["arc_length", "bilinear", "point_at_arc", "polyline_length", "resample_uniform", "segment_in_band", "subdivide",
+           "turn_deg", "unit"]
 
 
 def arc_length(points: np.ndarray) -> np.ndarray:
@@ -30,6 +30,21 @@ def arc_length(points: np.ndarray) -> np.ndarray:
         float64 (n,), 0 at the first vertex.
     """
     return np.r_[0.0, np.cumsum(np.hypot(*np.diff(points, axis=0).T))]
+
+
+def polyline_length(points) -> float:
+    """Length of a polyline (0 for fewer than two vertices).
+
+    Parameters
+    ----------
+    points : array_like
+        (n, 2) vertices (x, y).
+
+    Returns
+    -------
+    float
+    """
+    return float(np.hypot(*np.diff(np.asarray(points, np.float64), axis=0).T).sum()) if len(points) > 1 else 0.0
 
 
 def point_at_arc(points: np.ndarray, arc: np.ndarray, s) -> np.ndarray:
@@ -144,6 +159,23 @@ def segment_in_band(mask: np.ndarray, p: np.ndarray, q: np.ndarray, step: float 
     return bool(mask[i, j].all())
 
 
+def unit(v: np.ndarray) -> np.ndarray:
+    """``v`` scaled to length 1; the zero vector when ``v`` is shorter than 1e-12.
+
+    Parameters
+    ----------
+    v : numpy.ndarray
+        (2,) vector.
+
+    Returns
+    -------
+    numpy.ndarray
+        (2,)
+    """
+    n = np.hypot(*v)
+    return v / n if n > 1e-12 else np.zeros(2)
+
+
 def turn_deg(d_a: np.ndarray, d_b: np.ndarray) -> float:
     """Turn (degrees) between two unit directions that point *away* from the joint they meet at.
 
@@ -165,7 +197,7 @@ def bilinear(c: np.ndarray, xy) -> np.ndarray:
     """Bilinear samples of a pixel-centre grid at points; pixels outside the image count as 0.
 
     The reference version of the compiled samplers (``stages.graph.trace.coeffs_at``,
-    ``stages.flow._bilinear`` and ``_bilinear_field``).
+    ``stages.flow.kernel._bilinear`` and ``_bilinear_field``).
 
     Parameters
     ----------

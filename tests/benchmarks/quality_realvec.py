@@ -53,8 +53,8 @@ INPUTS = {"prep": (), "field": ("prep",), "graph": ("prep", "field"), "keypoints
           "topology": ("prep", "field", "graph", "keypoints"), "flow": ("prep", "field", "graph", "topology"),
           "select": ("prep", "topology", "flow"), "export": ("prep", "topology", "flow", "select")}
 SOURCES = {"prep": ["stages/prep.py"], "field": ["stages/field.py"], "graph": ["stages/graph"],
-           "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow.py"],
-           "select": ["stages/select.py"], "export": ["stages/export.py"]}
+           "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow"],
+           "select": ["stages/select.py"], "export": ["stages/export"]}
 KP_CODES = {"endpoints": 1, "junctions": 3, "corners": 5}
 TARGETS = {"f1_2": (">=", 0.97), "hausdorff_px": ("<=", 3.0), "endpoint_f1": (">=", 0.9),
            "junction_f1": (">=", 0.85)}

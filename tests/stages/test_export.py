@@ -14,6 +14,7 @@ import yaml
 from stages import export, synthetic
 from stages.artifact import Artifact, pack_ragged
 from stages.errors import InputError
+from stages.export import bezier, joins
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "export" / "default.yaml").read_text())
@@ -104,7 +105,7 @@ def test_bezier_fit_stays_within_tolerance_and_keeps_the_ends():
             ta, tb = a[3] - a[2], b[1] - b[0]
             assert abs(ta[0] * tb[1] - ta[1] * tb[0]) < 1e-9 * np.hypot(*ta) * np.hypot(*tb) + 1e-12
         u = np.linspace(0, 1, 400)
-        dense = np.concatenate([export._bezier(c, u) for c in pieces])
+        dense = np.concatenate([bezier._bezier(c, u) for c in pieces])
         dist = np.sqrt(((pts[:, None] - dense[None]) ** 2).sum(-1)).min(1)
         assert dist.max() <= tol + 0.02
         assert len(pieces) <= 8
@@ -463,13 +464,13 @@ def test_joining_is_near_linear_in_the_number_of_curves(monkeypatch):
     """A chain of N curves meeting end to end at junctions: every join re-examines only the groups it
     touches, so end directions are measured O(N) times, not O(N²) (dense scribbles took minutes)."""
     calls = {"n": 0}
-    direction = export.end_direction
+    direction = joins.end_direction
 
     def counting(*a, **k):
         calls["n"] += 1
         return direction(*a, **k)
 
-    monkeypatch.setattr(export, "end_direction", counting)
+    monkeypatch.setattr(joins, "end_direction", counting)
     n = 400
     xs = np.arange(n + 1) * 4.0
     curves = [{"id": k, "points": np.array([[xs[k], 0.0], [xs[k] + 2, 0.1 * (k % 2)], [xs[k + 1], 0.0]]),

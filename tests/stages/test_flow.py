@@ -20,6 +20,7 @@ from stages import flow, synthetic
 from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
+from stages.flow import kernel
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "flow" / "default.yaml").read_text())
@@ -141,9 +142,9 @@ def test_discrete_gradient_is_the_derivative_of_the_reported_energy():
     rng = np.random.default_rng(4)
     z = batch.z + (rng.normal(size=len(batch.z)) + 1j * rng.normal(size=len(batch.z))) * 0.6
     z[[0, -1]] = batch.z[[0, -1]]
-    fld = flow._pack_field(c0, c2)
+    fld = kernel._pack_field(c0, c2)
     cen = np.stack([batch.centres.real, batch.centres.imag], 1)
-    grad = flow._discrete_gradient(z, len(z), fld, batch.centres, batch.sigma, batch.rho2, 0, len(cen),
+    grad = kernel._discrete_gradient(z, len(z), fld, batch.centres, batch.sigma, batch.rho2, 0, len(cen),
                                    batch.window[0], p.barrier.cutoff ** 2, p.lam, p.eps, batch.home.copy())
 
     def energy(zz):
@@ -329,8 +330,11 @@ def test_run_with_no_paths_and_bad_input():
 def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
     """prep → field (real) + synthetic graph → topology → flow on a T: every curve stays on its stroke."""
     pytest.importorskip("stages.topology")
-    from stages import field as field_stage, prep as prep_stage, topology
     from synthetic_graph import synthetic_inputs
+
+    from stages import field as field_stage
+    from stages import prep as prep_stage
+    from stages import topology
 
     d = synthetic.tee()
     cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731
@@ -349,7 +353,8 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
 
 
 def _real_field(drawing):
-    from stages import field as field_stage, prep as prep_stage
+    from stages import field as field_stage
+    from stages import prep as prep_stage
 
     cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731
     p = prep_stage.run(cfg("prep"), image_bytes=drawing.png_bytes(), image_name="synthetic")

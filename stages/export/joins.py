@@ -1,147 +1,15 @@
-"""SVG (and curves JSON) of the selected flowed curves.
+"""Clean-ups of the selected curves before export: joins, link contraction, spurs and overshoots.
 
-Coordinates are pixel units with x right, y down and the origin at the top-left *corner* of the image
-(stages/INTERFACES.md), which is exactly SVG user space with ``viewBox="0 0 W H"``: the curves are
-written as they are, with no half-pixel shift (the authors add +0.5 because their points are pixel
-indices; ours are already corner-origin).
-
-Output (data of the artifact; the engine writes the files):
-
-* ``svg`` — one ``<path>`` per selected curve (polyline ``M … L …``), black stroke, no fill; stroke
-  width ``stroke_width`` px, or each curve's mean stroke width from the graph (topology path
-  ``widths``) when ``widths_from_graph`` is set;
-* ``curves`` — ``{"id", "points", "end_types", "end_keypoints", "parts", "width"}`` per curve, in
-  selection order (joined curves last);
-* ``bezier_svg`` (when ``bezier``) — the same curves as piecewise cubic Béziers fitted within
-  ``bezier_tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
-  least-squares control points for fixed end tangents, Newton re-parametrisation, split at the point
-  of largest error).  The fit keeps the curve's ends exactly, and its pieces join with a common
-  tangent (only keypoints are corners, and they are the curves' ends).
-
-The authors export raw polylines only (no Bézier fitting); this is an addition.
-
-Four clean-ups of the selected curves, each a choice beyond the paper (the authors export the
-selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
-unchanged by all four (a curve passing a point counts twice, like two ends).
-
-* **Joining continuations** (``join``).  The selection returns curves that end at every key vertex
-  they meet, so a stroke crossing another or running on past a junction keypoint comes out as two
-  curves meeting end to end: a split the drawing does not have.  At every junction keypoint and
-  synthetic end (never at an endpoint or a sharp corner) the two curve ends whose directions
-  continue each other best — turn below ``join.max_turn_deg`` over ``join.tangent_px`` of arc, every
-  other end there turning off both by ``join.margin_deg`` more (a Y's stem continues neither branch)
-  — are joined into one curve, repeatedly.  The authors glued such chains in their topology
-  (``advancedGlueAllJunction``); we join the flowed curves.  Joined curves list their ``parts``
-  (selected path ids) and keep the first part's ``id``.
-* **Spurs** (``spurs``).  A stroke overshooting a crossing leaves a short curve from the junction to
-  its tip beside the curve it continues, a dangling branch where the drawing has one stroke.  A curve
-  no longer than ``max(spurs.max_px, spurs.max_widths · width)`` from a junction keypoint to an
-  endpoint keypoint is joined to the piece at that junction that continues it best — another curve
-  ending there, or one half of a curve passing within ``spurs.near_px`` (split there) — when the turn
-  is at most ``spurs.max_turn_deg``.  With ``spurs.by_drawn_valence`` corner and junction keypoint
-  ends count as drawn (a corner where ≥ 3 curve ends meet is a junction; a keypoint only this curve
-  reaches is a free end), as the valence topology of the evaluation reads them.
-* **Links below the drawing's resolution** (``collapse``).  One feature found twice a few pixels
-  apart (a corner at the bottom of a vee, a corner next to a junction) gives a tiny curve between the
-  two keypoints, which adds two ends where the drawing has one point.  A curve no longer than
-  ``max(collapse.max_px, collapse.max_widths · width)`` (one stroke width: the drawing cannot
-  resolve it) whose two ends both meet longer curves is contracted to its midpoint, as an edge in a
-  graph (:func:`collapse_short_links`), before the joins, which then see one meeting point.
-* **Overshoots** (``overshoot``).  When no keypoint marks the tip of an overshoot the topology ends
-  the stroke at the junction and the ink beyond is lost.  A curve end at a junction or synthetic end
-  is extended straight on to where the ink (prep ``mask``) stops, less half the stroke width (a
-  centre line ends half a width inside its ink), when that is between ``max(min_px, min_widths·w)``
-  and ``max(max_px, max_widths·w)`` and the new tip keeps ``clearance`` × its length from every other
-  curve (:func:`extend_overshoots`; a plain T gives ≈ 0, a Y's gap fails the clearance).
-
-Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
-cutting them moves the false junction to where the curves part, which the ground truth rarely marks.
+Each is a choice beyond the paper, described in :mod:`stages.export` (measurements in
+stages/DECISIONS.md). Curves are dicts ``{"id", "points", "end_types", "end_keypoints", "parts",
+"width", ...}`` (stages/INTERFACES.md, export); points are (x, y) pixel coordinates, corner origin.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from xml.sax.saxutils import quoteattr
-
 import numpy as np
 
-from stages.artifact import Artifact, unpack_ragged
-from stages.config import from_section
-from stages.errors import InputError
-from stages.geometry import arc_length, point_at_arc, turn_deg
-
-STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
-
-
-@dataclass
-class CollapseConfig:
-    """``export.collapse``: contract links shorter than ~a stroke width between met ends."""
-
-    enabled: bool
-    max_px: float
-    max_widths: float
-
-
-@dataclass
-class JoinConfig:
-    """``export.join``: join curves continuing each other at junctions and synthetic ends."""
-
-    enabled: bool
-    max_turn_deg: float
-    tangent_px: float
-    margin_deg: float
-    same_branch_deg: float
-
-
-@dataclass
-class SpursConfig:
-    """``export.spurs``: attach short junction-to-endpoint curves to the piece they continue."""
-
-    enabled: bool
-    max_px: float
-    max_widths: float
-    max_turn_deg: float
-    near_px: float
-    by_drawn_valence: bool
-
-
-@dataclass
-class OvershootConfig:
-    """``export.overshoot``: extend ends at junctions over an ink overshoot no keypoint marks."""
-
-    enabled: bool
-    min_px: float
-    min_widths: float
-    max_px: float
-    clearance: float
-    max_widths: float
-
-
-@dataclass
-class ExportConfig:
-    """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
-
-    stroke_width: float
-    widths_from_graph: bool
-    precision: int
-    bezier: bool
-    bezier_tolerance: float
-    min_length_px: float
-    collapse: CollapseConfig
-    join: JoinConfig
-    spurs: SpursConfig
-    overshoot: OvershootConfig
-
-    def __post_init__(self) -> None:
-        if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
-            raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier_tolerance > 0")
-        if not 0 <= self.join.max_turn_deg <= 180 or self.join.tangent_px <= 0:
-            raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
-
-
-# ---------------------------------------------------------------------------------------------
-# Joining continuations at junctions and synthetic ends
-# ---------------------------------------------------------------------------------------------
+from stages.geometry import arc_length, point_at_arc, polyline_length, turn_deg, unit
 
 JOINABLE_TYPES = (0, 3)      # synthetic ends and junctions; never endpoints (1) or sharp corners (5)
 
@@ -155,7 +23,7 @@ def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarr
     if s[-1] <= 1e-12:
         return np.zeros(2)
     q = point_at_arc(pts, s, min(arc_px, 0.5 * s[-1]))
-    return _unit(pts[0] - q)
+    return unit(pts[0] - q)
 
 
 def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: float,
@@ -286,7 +154,7 @@ def _mean_width(a: dict, b: dict):
     wa, wb = a.get("width"), b.get("width")
     if wa is None or wb is None:
         return wa if wb is None else wb
-    la, lb = _length(a["points"]), _length(b["points"])
+    la, lb = polyline_length(a["points"]), polyline_length(b["points"])
     return float((wa * la + wb * lb) / max(la + lb, 1e-12))
 
 
@@ -337,7 +205,7 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
     rank = {5: 3, 3: 2, 1: 1, 0: 0}
     while True:
         found = None
-        lengths = [_length(c["points"]) for c in curves]
+        lengths = [polyline_length(c["points"]) for c in curves]
         for i, c in enumerate(curves):
             longest = max(max_px, max_widths * float(c.get("width") or 0.0))
             if lengths[i] > longest:
@@ -368,10 +236,6 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
 # ---------------------------------------------------------------------------------------------
 # Short spurs at junctions and unlabelled overshoots
 # ---------------------------------------------------------------------------------------------
-
-def _length(points: np.ndarray) -> float:
-    return float(np.hypot(*np.diff(np.asarray(points, np.float64), axis=0).T).sum()) if len(points) > 1 else 0.0
-
 
 _SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology puts shared ends on one vertex)
 
@@ -441,7 +305,7 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
         found = None
         for i, c in enumerate(curves):
             w = c.get("width") or 0.0
-            if c["id"] in done or _length(c["points"]) > max(spur_px, spur_widths * w):
+            if c["id"] in done or polyline_length(c["points"]) > max(spur_px, spur_widths * w):
                 continue
             for e in (0, 1):
                 t_j, t_f = c["end_types"][e], c["end_types"][1 - e]
@@ -479,7 +343,7 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                 m = int(np.argmin(dist)) + 1
                 if dist[m - 1] <= near_px:
                     for f, half in ((1, pts[:m + 1]), (0, pts[m:])):
-                        if _length(half) <= 1e-9:
+                        if polyline_length(half) <= 1e-9:
                             continue
                         t = turn_deg(d_s, end_direction(half, f == 0, tangent_px))
                         if best is None or t < best[0]:
@@ -585,7 +449,7 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
         lo, hi = max(min_px, min_widths * w), max(max_px, max_widths * w)
         ext = [None, None]
         for e in (0, 1):
-            if c["end_types"][e] not in JOINABLE_TYPES or _length(c["points"]) <= 1e-9:
+            if c["end_types"][e] not in JOINABLE_TYPES or polyline_length(c["points"]) <= 1e-9:
                 continue
             p = c["points"][0 if e == 0 else -1]
             d = end_direction(c["points"], e == 0, tangent_px)
@@ -630,249 +494,3 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
     return curves
 
 
-# ---------------------------------------------------------------------------------------------
-# Cubic Bézier fitting (Schneider 1990)
-# ---------------------------------------------------------------------------------------------
-
-def _bezier(ctrl: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Points of one cubic Bézier (4, 2) at parameters u."""
-    u = u[:, None]
-    v = 1 - u
-    return v ** 3 * ctrl[0] + 3 * v * v * u * ctrl[1] + 3 * v * u * u * ctrl[2] + u ** 3 * ctrl[3]
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.hypot(*v)
-    return v / n if n > 1e-12 else np.zeros(2)
-
-
-def _fit_segment(pts: np.ndarray, u: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
-    """Least-squares control points for fixed end points and end tangent directions."""
-    p0, p3 = pts[0], pts[-1]
-    v = 1 - u
-    a0 = (3 * v * v * u)[:, None] * t0
-    a1 = (3 * v * u * u)[:, None] * t1
-    c00, c01, c11 = (a0 * a0).sum(), (a0 * a1).sum(), (a1 * a1).sum()
-    rest = pts - _bezier(np.array([p0, p0, p3, p3]), u)
-    x0, x1 = (a0 * rest).sum(), (a1 * rest).sum()
-    det = c00 * c11 - c01 * c01
-    seg = np.hypot(*(p3 - p0))
-    if abs(det) > 1e-12:
-        al0 = (x0 * c11 - x1 * c01) / det
-        al1 = (c00 * x1 - c01 * x0) / det
-    else:
-        al0 = al1 = seg / 3
-    if al0 < 1e-6 * seg or al1 < 1e-6 * seg:  # degenerate: Wu–Barsky heuristic
-        al0 = al1 = seg / 3
-    return np.array([p0, p0 + al0 * t0, p3 + al1 * t1, p3])
-
-
-def _reparameterise(ctrl: np.ndarray, pts: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """One Newton step on |B(u) − p|² per point."""
-    d1 = 3 * np.diff(ctrl, axis=0)
-    d2 = 2 * np.diff(d1, axis=0)
-    diff = _bezier(ctrl, u) - pts
-    uu = u[:, None]
-    b1 = (1 - uu) ** 2 * d1[0] + 2 * (1 - uu) * uu * d1[1] + uu ** 2 * d1[2]
-    b2 = (1 - uu) * d2[0] + uu * d2[1]
-    num = (diff * b1).sum(1)
-    den = (b1 * b1).sum(1) + (diff * b2).sum(1)
-    step = np.where(np.abs(den) > 1e-12, num / np.where(np.abs(den) > 1e-12, den, 1), 0)
-    return np.clip(u - step, 0, 1)
-
-
-def fit_cubic_beziers(points: np.ndarray, tolerance: float, max_depth: int = 32) -> list[np.ndarray]:
-    """Fit a polyline with a chain of cubic Béziers within ``tolerance`` (max point distance).
-
-    Parameters
-    ----------
-    points : numpy.ndarray
-        (n, 2) polyline in (x, y).
-    tolerance : float
-        Largest allowed distance (px) between a polyline vertex and its fitted point.
-
-    Returns
-    -------
-    list of numpy.ndarray
-        (4, 2) control points per piece; consecutive pieces share end points.
-    """
-    pts = np.asarray(points, np.float64)
-    keep = np.r_[True, np.hypot(*np.diff(pts, axis=0).T) > 1e-9]
-    pts = pts[keep]
-    if len(pts) < 2:
-        return []
-    if len(pts) == 2:
-        a, b = pts
-        return [np.array([a, a + (b - a) / 3, a + 2 * (b - a) / 3, b])]
-
-    def tangent_at(i: int, direction: int) -> np.ndarray:
-        # Direction from vertex i towards its neighbours (≥ 2 px of arc, to average out jitter).
-        j, acc = i, 0.0
-        while 0 <= j + direction < len(pts) and acc < 2.0:
-            acc += np.hypot(*(pts[j + direction] - pts[j]))
-            j += direction
-        return _unit(pts[j] - pts[i])
-
-    out: list[np.ndarray] = []
-
-    def fit(lo: int, hi: int, t0: np.ndarray, t1: np.ndarray, depth: int) -> None:
-        seg = pts[lo:hi + 1]
-        if len(seg) == 2:
-            a, b = seg
-            d = np.hypot(*(b - a)) / 3
-            out.append(np.array([a, a + d * t0, b + d * t1, b]))
-            return
-        s = arc_length(seg)
-        u = s / s[-1]
-        ctrl = _fit_segment(seg, u, t0, t1)
-        for _ in range(20):
-            err = np.hypot(*(_bezier(ctrl, u) - seg).T)
-            if err.max() <= tolerance:
-                out.append(ctrl)
-                return
-            if err.max() > 4 * tolerance:
-                break
-            u = _reparameterise(ctrl, seg, u)
-            ctrl = _fit_segment(seg, u, t0, t1)
-        err = np.hypot(*(_bezier(ctrl, u) - seg).T)
-        if err.max() <= tolerance or depth >= max_depth:
-            out.append(ctrl)
-            return
-        k = int(np.argmax(err[1:-1])) + 1
-        tc = _unit(seg[k - 1] - seg[k + 1])
-        if not tc.any():
-            tc = _unit(np.array([-(seg[k + 1] - seg[k])[1], (seg[k + 1] - seg[k])[0]]))
-        fit(lo, lo + k, t0, tc, depth + 1)
-        fit(lo + k, hi, -tc, t1, depth + 1)
-
-    fit(0, len(pts) - 1, tangent_at(0, 1), tangent_at(len(pts) - 1, -1), 0)
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# SVG
-# ---------------------------------------------------------------------------------------------
-
-def _fmt(v: float, precision: int) -> str:
-    s = f"{v:.{precision}f}"
-    if "." in s:
-        s = s.rstrip("0").rstrip(".")
-    return "0" if s in ("-0", "") else s
-
-
-def _fmt_many(values: np.ndarray, precision: int) -> list[str]:
-    """:func:`_fmt` of many numbers (rounded once with numpy, then one format call per number)."""
-    v = np.round(np.asarray(values, np.float64), precision) + 0.0          # + 0.0: no "-0"
-    return [_fmt(x, precision) for x in v.tolist()] if precision else [str(int(x)) for x in v.tolist()]
-
-
-def _polyline_d(points: np.ndarray, precision: int) -> str:
-    pts = np.asarray(points, np.float64)
-    xs, ys = _fmt_many(pts[:, 0], precision), _fmt_many(pts[:, 1], precision)
-    coords = [f"{x} {y}" for x, y in zip(xs, ys)]
-    return "M " + coords[0] + "".join(" L " + c for c in coords[1:])
-
-
-def _bezier_d(pieces: list[np.ndarray], precision: int) -> str:
-    f = lambda p: f"{_fmt(p[0], precision)} {_fmt(p[1], precision)}"  # noqa: E731
-    return "M " + f(pieces[0][0]) + "".join(" C " + " ".join(f(q) for q in c[1:]) for c in pieces)
-
-
-def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportConfig) -> str:
-    """An SVG document with one black, unfilled ``<path>`` per curve.
-
-    Parameters
-    ----------
-    width, height : int
-        Image size in pixels (also the viewBox).
-    curves : list of dict
-        With ``id`` and ``width`` (used when ``widths_from_graph``).
-    ds : list of str
-        Path data per curve.
-    params : ExportConfig
-    """
-    lines = ['<?xml version="1.0" encoding="UTF-8" standalone="no"?>',
-             f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width}" height="{height}" '
-             f'viewBox="0 0 {width} {height}">',
-             f'  <g fill="none" stroke="#000000" stroke-width="{_fmt(params.stroke_width, 3)}" '
-             'stroke-linecap="round" stroke-linejoin="round">']
-    for c, d in zip(curves, ds):
-        extra = ""
-        if params.widths_from_graph and c.get("width"):
-            extra = f' stroke-width="{_fmt(c["width"], 3)}"'
-        lines.append(f'    <path id={quoteattr("curve-" + str(c["id"]))}{extra} d="{d}"/>')
-    lines += ["  </g>", "</svg>", ""]
-    return "\n".join(lines)
-
-
-def run(cfg: dict, **inputs: Artifact) -> Artifact:
-    """Stage entry: SVG and curves of the selected flowed paths.
-
-    Parameters
-    ----------
-    cfg : dict
-        The ``export`` config section.
-    prep, topology, flow, select : Artifact
-        Image size (``prep`` data ``height``/``width`` or its ``grey``), candidate paths (end types,
-        widths), flowed curves (topology order) and the chosen path ids.
-
-    Returns
-    -------
-    Artifact
-        data ``svg``, ``curves`` and (optional) ``bezier_svg``.
-    """
-    params = from_section(ExportConfig, cfg, "export")
-    for name in ("prep", "topology", "flow", "select"):
-        if name not in inputs:
-            raise InputError(f"export stage needs the '{name}' artifact")
-    prep, topo, fl, sel = (inputs[k] for k in ("prep", "topology", "flow", "select"))
-    if "height" in prep.data and "width" in prep.data:
-        height, width = int(prep.data["height"]), int(prep.data["width"])
-    elif "grey" in prep.arrays:
-        height, width = prep.arrays["grey"].shape
-    else:
-        raise InputError("export: the prep artifact gives no image size")
-    paths = topo.data.get("paths", [])
-    curves_xy = unpack_ragged(np.asarray(fl["curve_xy"]).reshape(-1, 2), np.asarray(fl["curve_xy_offsets"]))
-    if len(curves_xy) != len(paths):
-        raise InputError(f"export: {len(paths)} topology paths but {len(curves_xy)} flowed curves")
-    index = {int(p["id"]): k for k, p in enumerate(paths)}
-    curves, ds, bds = [], [], []
-    for cid in sel.data.get("chosen", []):
-        if int(cid) not in index:
-            raise InputError(f"export: chosen path {cid} is not a topology path")
-        k = index[int(cid)]
-        pts = np.asarray(curves_xy[k], np.float64)
-        if len(pts) < 2 or not np.all(np.isfinite(pts)):
-            continue
-        w = paths[k].get("widths") or []
-        curves.append({"id": int(cid), "points": pts, "parts": [int(cid)],
-                       "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
-                       "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
-                       "width": float(np.mean(w)) if len(w) else None})
-    if params.collapse.enabled:
-        curves = collapse_short_links(curves, params.collapse.max_px, params.collapse.max_widths)
-    if params.join.enabled:
-        curves = join_continuations(curves, params.join.max_turn_deg, params.join.tangent_px,
-                                    params.join.margin_deg, params.join.same_branch_deg)
-    if params.spurs.enabled:
-        curves = attach_spurs(curves, params.spurs.max_px, params.spurs.max_widths, params.spurs.max_turn_deg,
-                              params.join.tangent_px, params.spurs.near_px, params.spurs.by_drawn_valence)
-    mask = prep.arrays.get("mask")
-    if params.overshoot.enabled and mask is not None:
-        curves = extend_overshoots(curves, np.asarray(mask, bool), params.join.tangent_px, params.overshoot.min_px,
-                                   params.overshoot.min_widths, params.overshoot.max_px,
-                                   params.overshoot.max_widths, params.overshoot.clearance)
-    # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
-    # one point: `M x y L x y`), and has no tangent for the Bézier fit.
-    curves = [c for c in curves if _length(c["points"]) >= params.min_length_px]
-    for c in curves:
-        pts = c["points"]
-        c["points"] = pts.tolist()
-        ds.append(_polyline_d(pts, params.precision))
-        if params.bezier:
-            bds.append(_bezier_d(fit_cubic_beziers(pts, params.bezier_tolerance), params.precision))
-    data = {"svg": svg_document(width, height, curves, ds, params), "curves": curves}
-    if params.bezier:
-        data["bezier_svg"] = svg_document(width, height, curves, bds, params)
-    return Artifact(data=data)
