@@ -32,7 +32,7 @@ Choices, in short (each module's docstring has the reasons and measurements):
   (``removeBranchesFilter1``) and joins across singularities (``connectStuffAroundSingularities``);
   plus trimming of sideways-hooked tips at rounded stroke ends.  Without them a straight stroke's tip
   and a Y junction do not come out as a path and a valence-3 vertex.
-* **Ends inside another stroke** (:func:`~stages.graph.cleanup.trim_covered_ends`, not in the
+* **Ends inside another stroke** (:func:`~stages.graph.ends.trim_covered_ends`, not in the
   references): a T stem's chain runs on across the bar to its far edge, and rounded tips trace as
   tiny separate components; both made spurious junctions on realvec_dev.  Such ends are cut back
   onto the other stroke's centre line, such fragments dropped.
@@ -56,12 +56,12 @@ import numpy as np
 from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
-from stages.graph import cleanup
+from stages.graph import cleanup, ends
 from stages.graph.cross_section import RawGraph, build_cross_sections, streamline_edges
 from stages.graph.graph_picture import render_graph
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
-STAGE_VERSION = "3"  # 3: narrow loop caps closed (cleanup.close_loop_caps)
+STAGE_VERSION = "3"  # 3: narrow loop caps closed (ends.close_loop_caps)
 
 __all__ = ["STAGE_VERSION", "GraphConfig", "run", "build_graph", "render_graph"]
 
@@ -219,25 +219,25 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
                                                       cc.max_cycle_vertices)
     stats["loops_contracted"] = n_loops
     # 5. spurs inside the stroke
-    edges, n_spurs = cleanup.prune_covered_spurs(xy, width, counts, edges, cc.spur_max_length,
+    edges, n_spurs = ends.prune_covered_spurs(xy, width, counts, edges, cc.spur_max_length,
                                                  cc.spur_min_covered)
     stats["spurs_pruned"] = n_spurs
-    edges, n_tips = cleanup.trim_hooked_tips(xy, width, edges, cc.tip_hook_angle)
+    edges, n_tips = ends.trim_hooked_tips(xy, width, edges, cc.tip_hook_angle)
     stats["hooked_tips_trimmed"] = n_tips
     # 6. joins across singularities
     if cc.join_singular_distance > 0:
-        added = cleanup.join_singular_ends(xy, width, edges, flags, band, singular, cc.join_singular_distance,
+        added = ends.join_singular_ends(xy, width, edges, flags, band, singular, cc.join_singular_distance,
                                            cc.join_singular_min_hops)
     else:
         added = np.zeros((0, 2), np.int64)
     stats["singular_joins"] = int(len(added))
     edges = np.concatenate([edges, added]).astype(np.int64)
     # 6a. the caps of narrow loops
-    caps = cleanup.close_loop_caps(xy, width, edges, band, cc.close_caps_widths, cc.close_caps_min_hops)
+    caps = ends.close_loop_caps(xy, width, edges, band, cc.close_caps_widths, cc.close_caps_min_hops)
     stats["loop_caps_closed"] = int(len(caps))
     edges = np.concatenate([edges, caps]).astype(np.int64)
     # 6b. ends inside other components' strokes (after the joins: a Y's pieces are one component by now)
-    edges, n_cov = cleanup.trim_covered_ends(xy, width, edges, cc.spur_max_length, cc.spur_min_covered,
+    edges, n_cov = ends.trim_covered_ends(xy, width, edges, cc.spur_max_length, cc.spur_min_covered,
                                              cc.cover_margin)
     stats["covered_ends_trimmed"] = n_cov
     edges = _drop_small(xy, width, edges, cc.min_component_area)

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from stages.graph.trace import choose_direction, coeffs_at, quartic_roots, _grow_f
+from stages.graph.trace import _grow_f, choose_direction, coeffs_at, quartic_roots
 
 
 @njit(cache=True)

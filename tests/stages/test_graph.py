@@ -176,7 +176,7 @@ def test_t_stem_ends_on_the_bar_centre_line_not_beyond_it(angle, width):
 def test_covered_tip_fragment_is_dropped_and_a_separate_stroke_kept():
     """A tiny component inside another stroke's discs is that stroke's thickness (a rounded tip
     traced apart); one outside them is a stroke of its own."""
-    from stages.graph.cleanup import trim_covered_ends
+    from stages.graph.ends import trim_covered_ends
 
     main = np.stack([np.arange(0.0, 20.0), np.full(20, 10.0)], axis=1)          # width 4, ends at x = 19
     frag = np.array([[18.5, 11.0], [19.5, 10.5], [20.3, 10.0]])                  # inside its discs
@@ -194,7 +194,7 @@ def test_covered_tip_fragment_is_dropped_and_a_separate_stroke_kept():
 def test_two_short_components_covering_each_other_keep_the_longer():
     """Inside a small filled blob the two field families trace two short crossing components, each
     in the other's discs: only the shorter goes (deleting both left the blob without a curve)."""
-    from stages.graph.cleanup import trim_covered_ends
+    from stages.graph.ends import trim_covered_ends
 
     a = np.stack([np.arange(0.0, 6.0), np.full(6, 3.0)], axis=1)
     b = np.stack([np.full(7, 2.6), np.arange(0.2, 7.2)], axis=1)
