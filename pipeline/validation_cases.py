@@ -8,7 +8,7 @@ The human-stroke drawings of the categories that :func:`stages.keypoints.trainin
 training (``train.vector.holdout`` of ``train.vector.files``), and optionally the first symbols of
 the stroke-3 files' ``valid`` split (Omniglot), are rendered on a 512×512 canvas in two styles —
 ``clean`` (dark anti-aliased ink) and ``pencil`` (the generator's grain, lighter ink) — at stroke
-widths 2, 3 or 5 px (as realvec_dev), labelled by :mod:`stages.keypoints.labels`, and written as
+widths 2, 3 or 5 px (as realvec_dev), labelled by :mod:`stages.keypoints.training.labels`, and written as
 ``<name>.png`` + ``<name>.json`` (``size``, ``width``, ``style``, ``strokes``, ``endpoints``,
 ``junctions``, ``corners``). ``pipeline.eval_keypoints`` and ``polyvec-bench`` score such a folder,
 and so does the acceptance scorer (``score_folder.py`` reads ``strokes`` and ``width``).
@@ -62,10 +62,10 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     """
     from PIL import Image
 
-    from stages.keypoints.generator import read_quickdraw_ndjson
     from stages.keypoints.training import vector_pool, vector_split
-    from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, fit_strokes
-    from stages.keypoints.labels import LabelRules
+    from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
+    from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson
+    from stages.keypoints.training.labels import LabelRules
 
     tc = cfg["train"]
     vcfg = tc.get("vector") or {}
@@ -95,7 +95,7 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
             Image.fromarray((np.clip(s.grey, 0, 1) * 255).round().astype(np.uint8)).save(out / f"{case}.png")
             gt = {"size": SIZE, "width": width, "style": style,
                   "strokes": [np.round(p, 2).tolist() for p in placed],
-                  "keypoint_rule": "stages/keypoints/labels.py (reference/metrics.md §4.2)"}
+                  "keypoint_rule": "stages/keypoints/training/labels.py (reference/metrics.md §4.2)"}
             for key, code in (("endpoints", 1), ("junctions", 3), ("corners", 5)):
                 gt[key] = np.round(s.points[s.types == code], 2).tolist()
             (out / f"{case}.json").write_text(json.dumps(gt))
@@ -105,9 +105,8 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m pipeline.validation_cases OUT_DIR [options] [key=value …]`` (train config overrides)."""
-    from pipeline.train import compose_plain
-
     import conf
+    from pipeline.train import compose_plain
 
     ap = argparse.ArgumentParser(prog="python -m pipeline.validation_cases", description=__doc__.split("\n\n")[0])
     ap.add_argument("out", type=Path)

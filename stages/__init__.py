@@ -4,7 +4,10 @@ Stages are functions of arrays: they never read configs or the artifact store, a
 them their inputs. The files they read are their own shipped data (the keypoint weights and type
 classifier in ``stages/keypoints/weights/``, or a checkpoint named by ``keypoints.weights``). Each stage module
 exposes ``STAGE_VERSION`` (bump when results change) and ``run(cfg, **inputs) -> Artifact`` where
-``cfg`` is a plain ``dict`` (the stage's own Hydra config section) and every input is the
+``cfg`` is a plain ``dict`` (the stage's own Hydra config section, whose keys and types are one
+dataclass of the stage, built by :func:`stages.config.from_section`) and every input is the
 :class:`~stages.artifact.Artifact` of an upstream stage, passed by that stage's name.
-See ``stages/INTERFACES.md`` for what every artifact holds.
+See ``stages/INTERFACES.md`` for what every artifact holds and ``stages/DECISIONS.md`` for the
+measurements behind the stages' choices. Shared plane geometry is in :mod:`stages.geometry`; the
+training of the keypoint network is apart, in :mod:`stages.keypoints.training`.
 """

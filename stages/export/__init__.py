@@ -69,12 +69,7 @@ from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.export.bezier import fit_cubic_beziers
-from stages.export.joins import (
-    attach_spurs,
-    collapse_short_links,
-    extend_overshoots,
-    join_continuations,
-)
+from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
 
 STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px

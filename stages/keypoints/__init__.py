@@ -10,7 +10,7 @@ CPU-trained class maps confuse the types on real drawings — both are measured 
 :mod:`stages.keypoints.inference` for the other choices made.
 
 The network weights ship inside the package (``weights/keypoints.pt``, see ``weights/MODEL_CARD.md``)
-and are trained by ``polyvec-train`` on procedural drawings (:mod:`stages.keypoints.generator`) and
+and are trained by ``polyvec-train`` on procedural drawings (:mod:`stages.keypoints.training.generator`) and
 held-out human strokes. ``STAGE_VERSION`` carries a short hash of every shipped file, so new weights
 invalidate cached results.
 
@@ -36,7 +36,7 @@ import numpy as np
 from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
-from stages.keypoints.labels import TYPE_CODES
+from stages.keypoints.codes import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
 
 # torch and the modules that need it are imported inside load_model/run: the engine imports every

@@ -27,7 +27,7 @@ import torch
 from scipy import ndimage
 from skimage.feature import peak_local_max
 
-from stages.keypoints.labels import TYPE_CODES
+from stages.keypoints.codes import TYPE_CODES
 
 
 def network_input(grey: np.ndarray, contrast_floor: float) -> np.ndarray:

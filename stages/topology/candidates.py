@@ -28,13 +28,7 @@ from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.key_vertices import find_key_vertices, snap_position
 from stages.topology.steiner import path_to_source, steiner_tree
-from stages.topology.work_graph import (
-    WorkGraph,
-    arc_motions,
-    build_work_graph,
-    near_singularity_only,
-    turn_table,
-)
+from stages.topology.work_graph import WorkGraph, arc_motions, build_work_graph, near_singularity_only, turn_table
 
 SYNTHETIC = (-1, 0)      # (keypoint, type) of a key vertex that no keypoint asked for
 

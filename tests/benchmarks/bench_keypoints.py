@@ -17,8 +17,8 @@ import yaml
 
 from stages.artifact import Artifact
 from stages.keypoints import load_model, run
-from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, generate
-from stages.keypoints.labels import LabelRules
+from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
+from stages.keypoints.training.labels import LabelRules
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -35,8 +35,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _common import ROOT, source_hash, stage_cfg  # noqa: E402
+
 SHARED = ROOT / ".." / "shared" / "data"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # tests/synthetic_graph.py, the fixture graphs
@@ -57,7 +57,7 @@ def _upstream(name: str, data: bytes, cache: Path) -> dict:
 
     cfgs = [_cfg(s) for s in ("prep", "field", "graph")]
     key = hashlib.sha1(data + json.dumps(cfgs, sort_keys=True).encode()
-                       + _source_hash(ROOT / "stages" / "prep.py", ROOT / "stages" / "field.py",
+                       + _source_hash(ROOT / "stages" / "prep.py", ROOT / "stages" / "field",
                                       ROOT / "stages" / "graph").encode()).hexdigest()[:16]
     out = cache / f"{name}-{key}.pkl"
     if out.exists():
@@ -101,8 +101,9 @@ def _image(name: str) -> Path:
 
 
 def _case_inputs(name: str, cache: Path, keypoints: str) -> tuple[dict, np.ndarray]:
-    from stages import synthetic
     from synthetic_graph import ladder, synthetic_inputs
+
+    from stages import synthetic
 
     if name == "ladder-200":
         key = cache / "ladder-200.pkl"
@@ -132,9 +133,10 @@ def main(argv=None) -> int:
     ap.add_argument("--keypoints", choices=["reference", "stage"], default="reference")
     args = ap.parse_args(argv)
 
+    from synthetic_graph import synthetic_inputs
+
     import stages.topology as topology
     from stages.synthetic import line
-    from synthetic_graph import synthetic_inputs
 
     cache = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "polyvec-bench-topology"
     cache.mkdir(parents=True, exist_ok=True)

@@ -52,7 +52,7 @@ STAGES = ("prep", "field", "graph", "keypoints", "topology", "flow", "select", "
 INPUTS = {"prep": (), "field": ("prep",), "graph": ("prep", "field"), "keypoints": ("prep",),
           "topology": ("prep", "field", "graph", "keypoints"), "flow": ("prep", "field", "graph", "topology"),
           "select": ("prep", "topology", "flow"), "export": ("prep", "topology", "flow", "select")}
-SOURCES = {"prep": ["stages/prep.py"], "field": ["stages/field.py"], "graph": ["stages/graph"],
+SOURCES = {"prep": ["stages/prep.py"], "field": ["stages/field"], "graph": ["stages/graph"],
            "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow"],
            "select": ["stages/select.py"], "export": ["stages/export"]}
 KP_CODES = {"endpoints": 1, "junctions": 3, "corners": 5}
@@ -186,8 +186,8 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
     """One row of scores for a realvec_dev case (never raises: errors go into ``row['error']``)."""
     row: dict = {"name": name, "error": ""}
     try:
-        from stages.evaluate.score import RasterParams, render_ink, score_raster
         from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
+        from stages.evaluate.score import RasterParams, render_ink, score_raster
 
         res = run_case(name, keypoints, use_cache)
         case, arts = res["case"], res["arts"]

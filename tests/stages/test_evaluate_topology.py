@@ -9,9 +9,8 @@ import pytest
 import yaml
 
 from pipeline.cli import REPO_CONF
+from stages.evaluate.curve_topology import TopologyParams, benchmark_gap_statistics, compare_topology, curve_topology
 from stages.evaluate.matching import match_one_to_one, prf1
-from stages.evaluate.curve_topology import (TopologyParams, benchmark_gap_statistics, compare_topology,
-                                      curve_topology)
 from tests.conftest import shared_path
 
 P = TopologyParams.from_cfg(yaml.safe_load((REPO_CONF / "bench" / "default.yaml").read_text())["topology"])

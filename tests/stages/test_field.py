@@ -1,4 +1,4 @@
-"""Tests for stages/field.py: the PolyVector frame field."""
+"""Tests for stages/field/: the PolyVector frame field."""
 
 from __future__ import annotations
 

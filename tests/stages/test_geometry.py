@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry import (arc_length, bilinear, point_at_arc, resample_uniform, segment_in_band, subdivide,
-                             turn_deg)
+from stages.geometry import arc_length, bilinear, point_at_arc, resample_uniform, segment_in_band, subdivide, turn_deg
 
 
 def test_bilinear():

@@ -12,8 +12,9 @@ import torch
 
 from pipeline.train import compose_plain
 from stages.keypoints.training import category_split, train, vector_pool
-from stages.keypoints.generator import GeneratorConfig, drawing_from_strokes, read_stroke3
-from stages.keypoints.labels import LabelRules
+from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
+from stages.keypoints.training.human_strokes import read_stroke3
+from stages.keypoints.training.labels import LabelRules
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"

@@ -156,8 +156,8 @@ def test_vector_samples_skip_renders_and_labels(tmp_path):
     """Human-stroke training drawings: the first ``skip`` drawings never appear, each is styled
     ``renders`` times on a canvas within ``size``, and its keypoints come from the label rules."""
     from stages.keypoints.training import vector_samples
-    from stages.keypoints.generator import GeneratorConfig
-    from stages.keypoints.labels import LabelRules
+    from stages.keypoints.training.generator import GeneratorConfig
+    from stages.keypoints.training.labels import LabelRules
 
     ndjson = tmp_path / "doodles.ndjson"
     _write_ndjson(ndjson, 3)

@@ -17,12 +17,12 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
-from stages.keypoints.generator import (GeneratorConfig, drawing_from_strokes, generate, read_quickdraw_ndjson,
-                                        read_svg_strokes, render_strokes)
 from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
-from stages.keypoints.labels import LabelRules, label_keypoints
 from stages.keypoints.network import KeypointNet, NetConfig
-from stages.keypoints.targets import asymmetric_l1, gaussian_heatmaps, keypoint_loss
+from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate, render_strokes
+from stages.keypoints.training.human_strokes import read_quickdraw_ndjson, read_svg_strokes
+from stages.keypoints.training.labels import LabelRules, label_keypoints
+from stages.keypoints.training.targets import asymmetric_l1, gaussian_heatmaps, keypoint_loss
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT / ".." / "shared"

@@ -13,14 +13,14 @@ import networkx as nx
 import numpy as np
 import pytest
 import yaml
+from synthetic_graph import ladder, synthetic_inputs
 
 from stages import synthetic
 from stages.artifact import Artifact, unpack_ragged
 from stages.errors import InputError
 from stages.synthetic import Drawing, render
-from stages.topology import run, render_topology
+from stages.topology import render_topology, run
 from stages.topology.steiner import steiner_tree
-from synthetic_graph import ladder, synthetic_inputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "topology" / "default.yaml").read_text())
@@ -356,7 +356,9 @@ def test_many_cycles_and_terminals_do_not_give_up():
 # ---------------------------------------------------------------------------------------------
 
 def _real_inputs(drawing, keypoints=None):
-    from stages import field as field_stage, graph as graph_stage, prep as prep_stage
+    from stages import field as field_stage
+    from stages import graph as graph_stage
+    from stages import prep as prep_stage
 
     conf = {n: yaml.safe_load((ROOT / "conf" / n / "default.yaml").read_text()) for n in ("prep", "field", "graph")}
     prep = prep_stage.run(conf["prep"], image_bytes=drawing.png_bytes(), image_name="synthetic.png")

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import yaml
 from scipy import ndimage
+from synthetic_graph import synthetic_inputs
 
 from stages.synthetic import Drawing, render
 from stages.topology import run
 from stages.topology.key_vertices import snap_position
-from synthetic_graph import synthetic_inputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "topology" / "default.yaml").read_text())

@@ -7,7 +7,7 @@ Usage::
     polyvec-train                                   # conf/train_app.yaml: train + keypoints + prep
     polyvec-train train.steps=2000 train.out_dir=runs/small train.network.level_channels=[8,16,32,64]
 
-What it does, per step: a batch of crops of procedural drawings (stages/keypoints/generator.py,
+What it does, per step: a batch of crops of procedural drawings (stages/keypoints/training/generator.py,
 generated on the fly by DataLoader workers, each drawing a pure function of (seed, worker, index);
 with ``train.vector_prob`` > 0 that share of the drawings are human strokes of ``train.vector``, restyled
 each time), prep's contrast normalisation and narrow band, the authors' network-input normalisation, Gaussian
@@ -32,27 +32,10 @@ perceptron of :mod:`stages.keypoints.valence` (settings ``train.type_classifier`
 keypoints of generated drawings run through the real prep and keypoints stages.
 """
 
-from stages.keypoints.training.data import (
-                                            category_split,
-                                            draw_vector,
-                                            prepare_sample,
-                                            render_vector,
-                                            validation_set,
-                                            vector_pool,
-                                            vector_samples,
-                                            vector_split,
-)
-from stages.keypoints.training.loop import (
-                                            evaluate,
-                                            export_weights,
-                                            train,
-                                            train_class_branch,
-)
-from stages.keypoints.training.type_classifier import (
-                                            fit_type_classifier,
-                                            train_type_classifier,
-                                            type_classifier_data,
-)
+from stages.keypoints.training.data import (category_split, draw_vector, prepare_sample, render_vector,
+                                            validation_set, vector_pool, vector_samples, vector_split)
+from stages.keypoints.training.loop import evaluate, export_weights, train, train_class_branch
+from stages.keypoints.training.type_classifier import fit_type_classifier, train_type_classifier, type_classifier_data
 
 __all__ = ["category_split", "draw_vector", "evaluate", "export_weights", "fit_type_classifier", "prepare_sample",
            "render_vector", "train", "train_class_branch", "train_type_classifier", "type_classifier_data",

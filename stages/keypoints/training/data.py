@@ -1,6 +1,6 @@
 """Training data of the keypoint network: generated and human-stroke drawings as the stage sees them.
 
-Procedural drawings come from :mod:`stages.keypoints.generator`; human strokes (``train.vector``:
+Procedural drawings come from :mod:`stages.keypoints.training.generator`; human strokes (``train.vector``:
 Quick, Draw! categories split by :func:`category_split`, Omniglot stroke-3 symbols) are restyled by
 the same generator at every draw. Both go through prep's contrast normalisation and narrow band
 and the network-input normalisation of inference, so the network sees what it is run on.
@@ -15,22 +15,11 @@ import numpy as np
 import torch
 from skimage.measure import approximate_polygon
 
-from stages.keypoints.generator import (
-    GeneratorConfig,
-    drawing_from_strokes,
-    fit_strokes,
-    generate,
-    read_quickdraw_ndjson,
-    read_stroke3,
-)
-from stages.keypoints.inference import (
-    dilate_band,
-    network_input,
-)
-from stages.keypoints.labels import LabelRules
-from stages.keypoints.targets import (
-    gaussian_heatmaps,
-)
+from stages.keypoints.inference import dilate_band, network_input
+from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
+from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson, read_stroke3
+from stages.keypoints.training.labels import LabelRules
+from stages.keypoints.training.targets import gaussian_heatmaps
 from stages.prep import narrow_band, normalise_contrast
 
 # ------------------------------------------------------------------------------------------------
@@ -42,7 +31,7 @@ def prepare_sample(sample, cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Parameters
     ----------
-    sample : stages.keypoints.generator.Sample
+    sample : stages.keypoints.training.generator.Sample
     cfg : dict
         The composed config (``train``, ``keypoints``, ``prep`` sections).
 
@@ -262,7 +251,7 @@ def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, 
 
     Yields
     ------
-    stages.keypoints.generator.Sample
+    stages.keypoints.training.generator.Sample
     """
     pool = vector_pool(vcfg, part)
     if limit is not None:

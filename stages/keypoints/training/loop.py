@@ -15,24 +15,12 @@ import torch
 import torch.nn.functional as F
 
 from stages.evaluate.keypoints import MatchResult, match_keypoints
-from stages.keypoints.generator import (
-    GeneratorConfig,
-    generate,
-)
-from stages.keypoints.inference import (
-    find_keypoints,
-)
-from stages.keypoints.labels import LabelRules
+from stages.keypoints.inference import find_keypoints
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
-from stages.keypoints.targets import (
-    class_cross_entropy,
-    keypoint_loss,
-)
-from stages.keypoints.training.data import (
-    DrawingStream,
-    prepare_sample,
-    validation_set,
-)
+from stages.keypoints.training.data import DrawingStream, prepare_sample, validation_set
+from stages.keypoints.training.generator import GeneratorConfig, generate
+from stages.keypoints.training.labels import LabelRules
+from stages.keypoints.training.targets import class_cross_entropy, keypoint_loss
 
 
 def evaluate(model: KeypointNet, val, kcfg: dict, device: torch.device) -> MatchResult:
@@ -121,13 +109,7 @@ class _Log:
     def __init__(self, total: int, start: int):
         try:
             from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeRemainingColumn,
-            )
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
             self.console = Console()
             self.progress = Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),

@@ -12,12 +12,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stages.keypoints.generator import (
-    GeneratorConfig,
-    generate,
-)
-from stages.keypoints.labels import LabelRules
 from stages.keypoints.training.data import _vector_files, vector_samples, vector_split
+from stages.keypoints.training.generator import GeneratorConfig, generate
+from stages.keypoints.training.labels import LabelRules
 from stages.keypoints.training.loop import _class_weights
 
 # ------------------------------------------------------------------------------------------------
@@ -29,7 +26,7 @@ def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
 
     Yields
     ------
-    stages.keypoints.generator.Sample
+    stages.keypoints.training.generator.Sample
     """
     rng = np.random.default_rng(seed)
     gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
@@ -75,7 +72,7 @@ def type_classifier_data(cfg: dict, count: int, seed: int, vector: bool = True) 
     from stages import keypoints as kp_stage
     from stages import prep as prep_stage
     from stages.evaluate.matching import match_one_to_one
-    from stages.keypoints.labels import TYPE_CODES
+    from stages.keypoints.codes import TYPE_CODES
     from stages.keypoints.valence import class_scores_at, valence_features
 
     kcfg = dict(cfg["keypoints"], typing="argmax")

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stages.keypoints.labels import TYPE_CODES
+from stages.keypoints.codes import TYPE_CODES
 
 
 def gaussian_heatmaps(shape: tuple[int, int], points: np.ndarray, types: np.ndarray, sigma: float) -> np.ndarray:

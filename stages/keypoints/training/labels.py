@@ -37,9 +37,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.geometry import point_at_arc, resample_uniform
-
-ENDPOINT, JUNCTION, CORNER = 1, 3, 5
-TYPE_CODES = (ENDPOINT, JUNCTION, CORNER)  # channels 1, 2, 3 of the heatmaps, in this order
+from stages.keypoints.codes import CORNER, ENDPOINT, JUNCTION
 
 
 @dataclass(frozen=True)

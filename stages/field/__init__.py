@@ -34,49 +34,32 @@ Steps (in the order of :func:`compute_field`):
    the moduli tie (relative difference < ``tie_tolerance``) the root closer to the image tangent
    (structure tensor smoothed with σ = ``tie_sigma``) goes first: for an axis-aligned stroke the exact
    frame {x, y} is *one* polynomial (c0 = −1, c2 = 0) for a horizontal and a vertical stroke, so
-   "larger modulus" alone would put the normal first on one of them (measured: 979 of 3,514 band
-   pixels of the bundled example were exact ties after a tight solve).
+   "larger modulus" alone would put the normal first on one of them (a frequent case: see
+   stages/DECISIONS.md).
 6. **Extension for the flow.**  The band is dilated by a disk of radius ``extension_radius``; on the
    ring only the smart-weighted Laplacian is solved with the band values held fixed; ring values are
    then multiplied by ``extension_scale`` × (L1 distance to the band).  0 beyond the ring.
 
-Choices made on purpose (vs. the references)
+Choices made on purpose (vs. the references; measurements in stages/DECISIONS.md)
 -------------------------------------------
 * **β = 50** (B19's value), not the authors' 10, although this project reproduces the authors'
-  paper.  Measured with the reference α = 0.1 (synthetic strokes thresholded at grey < 165/255):
-
-  ====================================  ================  ================
-  measure                               β = 10 (authors)  β = 50 (B19)
-  ====================================  ================  ================
-  17° stroke, 80 px, width 3/4/5:       79 / 97 / 91 %    100 / 99 / 98 %
-  band pixels with tangent root < 2°
-  60° crossing, width 4/5/6: median     14 / 12 / 10°     8 / 7 / 7°
-  root error where the strokes overlap
-  scans (4 drawings, prep mask):        8–95              0–20
-  singular pixels left
-  50° corner, leg pixels 2–4 px away:   7.0 / 5.9°        10.8 / 7.6°
-  median tangent error
-  ====================================  ================  ================
-
-  β = 10 lets the Sobel aliasing of thin anti-aliased strokes through (a few degrees, periodic) and
-  leaves 5× more singularities on scans; β = 50 rounds the field at sharp corners slightly more.
-  It is ``beta`` in ``conf/field/default.yaml``.
+  paper: β = 10 lets the Sobel aliasing of thin anti-aliased strokes through and leaves far more
+  singularities on scans; β = 50 rounds the field at sharp corners slightly more.  It is ``beta`` in
+  ``conf/field/default.yaml``.
 * **α = 0.1** (both references).  It is what keeps X junctions from being represented exactly: it
   pulls each arm's second root to the arm's normal, so where two strokes overlap the field is a
-  compromise between the arms' {stroke, normal} frames (≈ 7° off with β = 50).  α = 0.01 gives
-  2–4° there but 3–10× more singular pixels on scans, so we keep 0.1.
+  compromise between the arms' {stroke, normal} frames.  A smaller α fits X junctions better but
+  leaves many more singular pixels on scans.
 * **Tie-break of equal moduli** by the smoothed image tangent (step 5).
 * **One system for all components** instead of B19's per-component solves: the matrix is block
   diagonal, so the solution is the same up to the CG stopping rule, and one solve avoids a Python loop
   over hundreds of tiny components in a scan.  The singularity loop is therefore global: it stops
   when the *total* count stops falling.
 * **CG tolerance.**  The references run Eigen's CG to machine epsilon; we stop at a relative residual
-  of ``cg_rtol`` = 1e-6.  On the four scans (prep mask, β = 50) the roots then match a 1e-12 cold
-  solve to < 0.05° on every band pixel, with 23–35 % of its CG iterations; 1e-4 already moves up to
-  1.8 % of the pixels by > 0.05° and changes the singularity count.  ``cg_max_iterations`` caps every
-  solve (observed ≤ 215 per solve).
+  of ``cg_rtol`` = 1e-6, where the roots already match a much tighter solve, and ``cg_max_iterations``
+  caps every solve (bounds the run time).
 * **Warm start.**  Each re-solve of the singularity loop starts from the previous solution
-  (``warm_start``); the references start from zero.  Same fixed point, 25–47 % fewer iterations.
+  (``warm_start``); the references start from zero.  Same fixed point, fewer iterations.
 * **Kept solution.**  If a re-solve does not lower the singularity count the loop stops and keeps
   the solution with the fewest singular pixels (the reference keeps the last one).
 * Pixels with no data and no smoothness neighbour (isolated single-pixel band components without
@@ -103,6 +86,7 @@ import scipy.sparse as sp
 from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
+from stages.field.field_picture import render_field
 
 STAGE_VERSION = "1"
 
@@ -606,66 +590,3 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         "c0_ext": out["c0_ext"].astype(np.complex64), "c2_ext": out["c2_ext"].astype(np.complex64),
     }
     return Artifact(arrays=arrays, data=out["stats"])
-
-
-# ---------------------------------------------------------------------------------------------
-# Rendering
-# ---------------------------------------------------------------------------------------------
-
-def render_field(grey: np.ndarray, roots: np.ndarray, mask: np.ndarray, step: int = 3, scale: int = 4,
-                 singular: np.ndarray | None = None) -> np.ndarray:
-    """Draw the frame field as small crosses over the drawing.
-
-    Parameters
-    ----------
-    grey : numpy.ndarray
-        (H, W) in [0, 1], 1 = white.
-    roots : numpy.ndarray
-        complex (H, W, 2), the artifact's ``roots``.
-    mask : numpy.ndarray
-        bool (H, W); band pixels are tinted light yellow.
-    step : int
-        Draw a cross at every ``step``-th band pixel in both directions.
-    scale : int
-        Integer magnification of the output (nearest-neighbour upsampling).
-    singular : numpy.ndarray, optional
-        bool (H, W); singular pixels are marked with green squares.
-
-    Returns
-    -------
-    numpy.ndarray
-        uint8 (H·scale, W·scale, 3) RGB.  Root 0 (larger modulus) in red, root 1 in blue; arm length
-        is ``0.45·step`` px times the root's modulus relative to root 0, so a short blue arm means a
-        weak second direction.
-    """
-    from PIL import Image, ImageDraw
-
-    step, scale = max(1, int(step)), max(1, int(scale))
-    g = np.clip(np.asarray(grey, dtype=np.float64), 0, 1)
-    rgb = np.repeat((g * 255)[..., None], 3, axis=2)
-    # Fade the drawing so the crosses stand out; tint the band.
-    rgb = 90 + 0.65 * rgb
-    rgb[mask] = rgb[mask] * np.array([1.0, 1.0, 0.75])
-    rgb = np.repeat(np.repeat(np.clip(rgb, 0, 255).astype(np.uint8), scale, 0), scale, 1)
-    img = Image.fromarray(rgb, "RGB")
-    draw = ImageDraw.Draw(img)
-    if singular is not None:
-        for i, j in zip(*np.nonzero(singular)):
-            draw.rectangle([j * scale, i * scale, (j + 1) * scale - 1, (i + 1) * scale - 1], outline=(0, 170, 0))
-    sel = np.zeros_like(mask, dtype=bool)
-    sel[::step, ::step] = True
-    sel &= mask
-    arm = 0.45 * step * scale
-    for i, j in zip(*np.nonzero(sel)):
-        r0, r1 = roots[i, j, 0], roots[i, j, 1]
-        m0 = abs(r0)
-        if m0 == 0:
-            continue
-        cx, cy = (j + 0.5) * scale, (i + 0.5) * scale
-        for r, col in ((r1, (40, 90, 255)), (r0, (230, 20, 20))):
-            m = abs(r)
-            if m == 0:
-                continue
-            d = r / m * arm * min(1.0, m / m0)
-            draw.line([cx - d.real, cy - d.imag, cx + d.real, cy + d.imag], fill=col, width=max(1, scale // 3))
-    return np.asarray(img)
