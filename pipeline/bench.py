@@ -40,8 +40,45 @@ from pipeline.bench_report import case_picture, pick_sort_column, print_tables, 
 from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError
 from pipeline.runner import BatchResult, TaskResult, plan, run_batch
 from pipeline.store import ArtifactStore
+from stages.config import from_section
+from stages.evaluate.curve_topology import TopologyParams
+from stages.evaluate.score import RasterParams
 
 KEYPOINT_CLASSES = {"endpoints": 1, "junctions": 3, "corners": 5}
+
+
+@dataclass
+class BenchKeypointsConfig:
+    """``bench.keypoints``: the authors' keypoint F1 and a one-to-one F1 (metrics.md §3)."""
+
+    radius_height_fraction: float
+    one_to_one_radius_px: float
+
+
+@dataclass
+class BenchReportConfig:
+    """``bench.report``: the summary tables and ``report.html``."""
+
+    sort_by: str
+    html: bool
+    max_html_cases: int
+    image_scale: int
+    gt_columns: list[str]
+    fidelity_columns: list[str]
+
+
+@dataclass
+class BenchConfig:
+    """The ``bench`` config group (``conf/bench/default.yaml``), one field per key."""
+
+    cases: list[str]
+    out: str
+    limit: int | None
+    run_pipeline: bool
+    raster: RasterParams
+    keypoints: BenchKeypointsConfig
+    topology: TopologyParams
+    report: BenchReportConfig
 
 
 @dataclass
@@ -270,8 +307,8 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
     from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, render_ink,
                                        score_raster, stage_timings)
 
-    rparams = RasterParams.from_cfg(bcfg["raster"])
-    tparams = TopologyParams.from_cfg(bcfg["topology"])
+    rparams = from_section(RasterParams, bcfg["raster"], "bench.raster")
+    tparams = from_section(TopologyParams, bcfg["topology"], "bench.topology")
     image = str(case.image)
     per = batch.results.get(image, {})
     keys = batch.keys(image)
@@ -365,7 +402,8 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
         if not console.is_terminal:  # a log file: do not squeeze the tables into 80 columns
             console = Console(stderr=True, width=220)
     bcfg = OmegaConf.to_container(cfg.bench, resolve=True)
-    cases = discover_cases(list(bcfg["cases"] or []), bcfg.get("limit"))
+    from_section(BenchConfig, bcfg, "bench")  # every key present, none unknown
+    cases = discover_cases(list(bcfg["cases"] or []), bcfg["limit"])
     out = Path(str(bcfg["out"]))
     try:  # a sweep (-m): one report per job, named after its overrides
         from hydra.core.hydra_config import HydraConfig

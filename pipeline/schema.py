@@ -14,6 +14,7 @@ from typing import Any
 
 from hydra.core.config_store import ConfigStore
 
+from pipeline.bench import BenchConfig
 from pipeline.runner import RuntimeConfig, stage_config
 from stages.config import from_section
 from stages.export import ExportConfig
@@ -30,7 +31,7 @@ from stages.topology import TopologyConfig
 SCHEMAS: dict[str, type] = {
     "prep": PrepConfig, "keypoints": KeypointsConfig, "keypoint_edits": KeypointEditsConfig,
     "field": FieldConfig, "graph": GraphConfig, "topology": TopologyConfig, "flow": FlowConfig,
-    "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig,
+    "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig, "bench": BenchConfig,
 }
 
 

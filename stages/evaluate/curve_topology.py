@@ -52,9 +52,9 @@ from stages.geometry import subdivide
 __all__ = ["TopologyParams", "Topology", "curve_topology", "compare_topology", "benchmark_gap_statistics"]
 
 
-@dataclass(frozen=True)
+@dataclass
 class TopologyParams:
-    """Tolerances of the topology extraction (conf/bench/default.yaml ``topology``)."""
+    """Tolerances of the topology extraction (conf/bench/default.yaml ``topology``), one field per key."""
 
     meet_min_px: float
     match_min_px: float
@@ -68,11 +68,6 @@ class TopologyParams:
     overlap_max_angle_deg: float
     overlap_exclusion_factor: float
     overlap_self_separation: float
-
-    @classmethod
-    def from_cfg(cls, cfg: dict) -> "TopologyParams":
-        """Build from a config dict holding exactly these keys (extra keys are ignored)."""
-        return cls(**{k: float(cfg[k]) for k in cls.__dataclass_fields__})
 
 
 @dataclass

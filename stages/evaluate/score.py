@@ -27,9 +27,9 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
+@dataclass
 class RasterParams:
-    """Raster metric settings (conf/bench/default.yaml ``raster``)."""
+    """Raster metric settings (conf/bench/default.yaml ``raster``), one field per key."""
 
     stroke_width_permille: float
     min_stroke_width_px: float
@@ -39,21 +39,9 @@ class RasterParams:
     f1_pixels: tuple[float, ...]
     fidelity_reference: str
 
-    @classmethod
-    def from_cfg(cls, cfg: dict) -> "RasterParams":
-        """Build from the ``raster`` config section."""
-        ref = str(cfg["fidelity_reference"])
-        if ref not in ("input", "skeleton"):
-            raise ValueError(f"raster.fidelity_reference must be input or skeleton, not {ref!r}")
-        return cls(
-            stroke_width_permille=float(cfg["stroke_width_permille"]),
-            min_stroke_width_px=float(cfg["min_stroke_width_px"]),
-            supersample=int(cfg["supersample"]),
-            ink_threshold=float(cfg["ink_threshold"]),
-            f1_permille=tuple(float(d) for d in cfg["f1_permille"]),
-            f1_pixels=tuple(float(d) for d in cfg["f1_pixels"]),
-            fidelity_reference=ref,
-        )
+    def __post_init__(self) -> None:
+        if self.fidelity_reference not in ("input", "skeleton"):
+            raise ValueError(f"raster.fidelity_reference must be input or skeleton, not {self.fidelity_reference!r}")
 
 
 def render_ink(curves: Sequence[np.ndarray], shape: tuple[int, int], params: RasterParams) -> np.ndarray:

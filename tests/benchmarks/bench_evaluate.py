@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from PIL import Image
 
+from stages.config import from_section
 from stages.evaluate.matching import match_one_to_one, prf1
 from stages.evaluate.score import RasterParams, render_ink, score_raster
 from stages.evaluate.curve_topology import TopologyParams, curve_topology
@@ -31,7 +32,8 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None)
     args = ap.parse_args()
     bcfg = yaml.safe_load((REPO / "conf" / "bench" / "default.yaml").read_text())
-    rp, tp = RasterParams.from_cfg(bcfg["raster"]), TopologyParams.from_cfg(bcfg["topology"])
+    rp = from_section(RasterParams, bcfg["raster"], "bench.raster")
+    tp = from_section(TopologyParams, bcfg["topology"], "bench.topology")
     files = sorted(p for p in DATA.glob("*_*.json"))[: args.limit]
     rows, t_raster, t_topo = [], [], []
     for p in files:

@@ -186,13 +186,15 @@ def score_case(name: str, keypoints: str = "gt", use_cache: bool = True) -> dict
     """One row of scores for a realvec_dev case (never raises: errors go into ``row['error']``)."""
     row: dict = {"name": name, "error": ""}
     try:
+        from stages.config import from_section
         from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
         from stages.evaluate.score import RasterParams, render_ink, score_raster
 
         res = run_case(name, keypoints, use_cache)
         case, arts = res["case"], res["arts"]
         bench = load_cfg("bench")
-        rp, tp = RasterParams.from_cfg(bench["raster"]), TopologyParams.from_cfg(bench["topology"])
+        rp = from_section(RasterParams, bench["raster"], "bench.raster")
+        tp = from_section(TopologyParams, bench["topology"], "bench.topology")
         shape = arts["prep"]["grey"].shape
         long_edge = float(max(shape))
         row.update(style=case.get("style", ""), width=float(case["width"]), t_total=sum(res["times"].values()))
@@ -348,6 +350,7 @@ def render_case(name: str, out: Path, keypoints: str = "gt", scale: int = 2, cro
     from scipy import ndimage
     from skimage.draw import circle_perimeter, disk, line_aa
 
+    from stages.config import from_section
     from stages.evaluate.score import RasterParams, render_ink
 
     res = run_case(name, keypoints)
@@ -356,7 +359,7 @@ def render_case(name: str, out: Path, keypoints: str = "gt", scale: int = 2, cro
     h, w = grey.shape
     curves = [np.asarray(c["points"], float) for c in arts["export"].data["curves"]]
     strokes = [np.asarray(s, float).reshape(-1, 2) for s in case.get("strokes", [])]
-    rp = RasterParams.from_cfg(load_cfg("bench")["raster"])
+    rp = from_section(RasterParams, load_cfg("bench")["raster"], "bench.raster")
     ink_o, ink_g = render_ink(curves, (h, w), rp), render_ink(strokes, (h, w), rp)
     tau = 2 * max(h, w) / 1000
     fp = ink_o & (ndimage.distance_transform_edt(~ink_g) > tau)
@@ -368,9 +371,10 @@ def render_case(name: str, out: Path, keypoints: str = "gt", scale: int = 2, cro
     kp = arts["keypoints"]
     kps = list(zip(np.asarray(kp["points"]).reshape(-1, 2), np.asarray(kp["types"]).ravel()))
     colours = {1: (0.1, 0.3, 1.0), 3: (1.0, 0.55, 0.0), 5: (0.0, 0.7, 0.2)}
+    from stages.config import from_section
     from stages.evaluate.curve_topology import TopologyParams, curve_topology
 
-    tp = TopologyParams.from_cfg(load_cfg("bench")["topology"])
+    tp = from_section(TopologyParams, load_cfg("bench")["topology"], "bench.topology")
     wd = float(case.get("width", 3.0))
     topo_o, topo_g = curve_topology(curves, wd, tp), curve_topology(strokes, wd, tp)
 

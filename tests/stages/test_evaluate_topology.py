@@ -9,11 +9,13 @@ import pytest
 import yaml
 
 from pipeline.cli import REPO_CONF
+from stages.config import from_section
 from stages.evaluate.curve_topology import TopologyParams, benchmark_gap_statistics, compare_topology, curve_topology
 from stages.evaluate.matching import match_one_to_one, prf1
 from tests.conftest import shared_path
 
-P = TopologyParams.from_cfg(yaml.safe_load((REPO_CONF / "bench" / "default.yaml").read_text())["topology"])
+P = from_section(TopologyParams, yaml.safe_load((REPO_CONF / "bench" / "default.yaml").read_text())["topology"],
+                 "bench.topology")
 W = 2.0  # stroke width: meet radius r = 2, match radius 5
 
 BAR = np.array([[10.0, 50.0], [90.0, 50.0]])

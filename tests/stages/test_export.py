@@ -360,11 +360,12 @@ def test_spur_at_a_synthetic_junction_with_a_free_synthetic_end():
 # ---------------------------------------------------------------------------------------------
 
 def _topology(curves, width=3.0):
+    from stages.config import from_section
     from stages.evaluate.curve_topology import TopologyParams, curve_topology
 
     bench = yaml.safe_load((ROOT / "conf" / "bench" / "default.yaml").read_text())
     return curve_topology([np.asarray(c["points"]) for c in curves], width,
-                            TopologyParams.from_cfg(bench["topology"]))
+                            from_section(TopologyParams, bench["topology"], "bench.topology"))
 
 
 @pytest.mark.parametrize("by_valence", [False, True])
