@@ -23,6 +23,7 @@ from stages.flow import FlowConfig
 from stages.graph import GraphConfig
 from stages.keypoint_edits import KeypointEditsConfig
 from stages.keypoints import KeypointsConfig
+from stages.keypoints.training.config import TrainConfig
 from stages.prep import PrepConfig
 from stages.select import SelectConfig
 from stages.topology import TopologyConfig
@@ -32,6 +33,7 @@ SCHEMAS: dict[str, type] = {
     "prep": PrepConfig, "keypoints": KeypointsConfig, "keypoint_edits": KeypointEditsConfig,
     "field": FieldConfig, "graph": GraphConfig, "topology": TopologyConfig, "flow": FlowConfig,
     "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig, "bench": BenchConfig,
+    "train": TrainConfig,
 }
 
 

@@ -32,15 +32,26 @@ def _set(d: dict, dotted: str, value) -> None:
 
 
 def compose_plain(conf_dir: str | Path, overrides: list[str]) -> dict:
-    """Compose train_app's sections from YAML without Hydra (for machines that lack it)."""
+    """Compose train_app's sections from YAML without Hydra (for machines that lack it).
+
+    Each section is checked against its dataclass, as Hydra does with the structured configs: a
+    missing, unknown or ill-typed key is an error here, before any training starts.
+    """
     import yaml
 
+    from stages.config import from_section
+    from stages.keypoints import KeypointsConfig
+    from stages.keypoints.training.config import TrainConfig
+    from stages.prep import PrepConfig
+
     conf_dir = Path(conf_dir)
-    cfg = {name: yaml.safe_load((conf_dir / name / "default.yaml").read_text())
-           for name in ("train", "keypoints", "prep")}
+    schemas = {"train": TrainConfig, "keypoints": KeypointsConfig, "prep": PrepConfig}
+    cfg = {name: yaml.safe_load((conf_dir / name / "default.yaml").read_text()) for name in schemas}
     for o in overrides:
         k, v = o.split("=", 1)
         _set(cfg, k, yaml.safe_load(v))
+    for name, cls in schemas.items():
+        from_section(cls, cfg[name], name)
     return cfg
 
 

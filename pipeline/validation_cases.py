@@ -62,6 +62,7 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     """
     from PIL import Image
 
+    from stages.config import from_section
     from stages.keypoints.training import vector_pool, vector_split
     from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
     from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson
@@ -69,8 +70,8 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
 
     tc = cfg["train"]
     vcfg = tc.get("vector") or {}
-    gcfg = GeneratorConfig.from_dict(tc["generator"])
-    rules = LabelRules.from_dict(tc["labels"])
+    gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
+    rules = from_section(LabelRules, tc["labels"], "train.labels")
     _, valid = vector_split(vcfg)
     drawings: list[tuple[str, list[np.ndarray]]] = []
     for f in valid:

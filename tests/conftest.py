@@ -21,6 +21,19 @@ def shared_path(*parts: str) -> Path:
     return p
 
 
+def train_configs() -> tuple:
+    """The ``generator`` and ``labels`` sections of conf/train/default.yaml as their dataclasses."""
+    import yaml
+
+    from stages.config import from_section
+    from stages.keypoints.training.generator import GeneratorConfig
+    from stages.keypoints.training.labels import LabelRules
+
+    train = yaml.safe_load((REPO / "conf" / "train" / "default.yaml").read_text())
+    return (from_section(GeneratorConfig, train["generator"], "train.generator"),
+            from_section(LabelRules, train["labels"], "train.labels"))
+
+
 def run_cli(*args: str, cwd: Path, module: str = "pipeline.cli") -> subprocess.CompletedProcess:
     """Run a polyvec command line (``python -m module args``) in a subprocess, as a user would."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -35,7 +35,7 @@ import torch
 from torch import nn
 
 
-@dataclass(frozen=True)
+@dataclass
 class NetConfig:
     """Width and depth of :class:`KeypointNet` (``conf/train/default.yaml`` ``network``).
 
@@ -57,12 +57,12 @@ class NetConfig:
         Checkpoints written before these two keys existed load with (0, (1,)).
     """
 
-    stem_mid: int = 8
-    level_channels: tuple[int, ...] = (16, 32, 48, 64)
-    bottleneck_blocks: int = 3
-    negative_slope: float = 0.1
-    class_width: int = 0
-    class_dilations: tuple[int, ...] = (1,)
+    stem_mid: int
+    level_channels: tuple[int, ...]
+    bottleneck_blocks: int
+    negative_slope: float
+    class_width: int
+    class_dilations: tuple[int, ...]
 
     @property
     def depth(self) -> int:
@@ -70,6 +70,7 @@ class NetConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetConfig":
+        """From the ``network`` record of a checkpoint (configs go through :func:`stages.config.from_section`)."""
         # The two class-branch keys are absent from checkpoints of the first shipped model; their
         # legacy values rebuild exactly that model's head.
         return cls(stem_mid=int(d["stem_mid"]), level_channels=tuple(int(c) for c in d["level_channels"]),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ import torch
 import yaml
 
 from stages.artifact import Artifact
+from stages.config import from_section
 from stages.keypoints import load_model, run
 from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
 from stages.keypoints.training.labels import LabelRules
@@ -26,12 +28,15 @@ ROOT = Path(__file__).resolve().parents[2]
 def drawing(size: int) -> Artifact:
     """A procedural drawing of ``size``×``size`` px (a 320-px drawing scaled up, clean ink)."""
     rng = np.random.default_rng(7)
-    cfg = GeneratorConfig(primitives_min=12, primitives_max=12, pencil_prob=0.0)
-    s = generate(rng, cfg, LabelRules())
+    train = yaml.safe_load((ROOT / "conf" / "train" / "default.yaml").read_text())
+    generator = from_section(GeneratorConfig, train["generator"], "train.generator")
+    rules = from_section(LabelRules, train["labels"], "train.labels")
+    cfg = replace(generator, primitives_min=12, primitives_max=12, pencil_prob=0.0)
+    s = generate(rng, cfg, rules)
     k = size / s.grey.shape[0]
     strokes = [p * k for p in s.strokes]
     widths = [w * k * 0.6 for w in s.widths]
-    d = drawing_from_strokes(rng, strokes, (size, size), cfg, LabelRules(), widths)
+    d = drawing_from_strokes(rng, strokes, (size, size), cfg, rules, widths)
     return Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.647}, data={})
 
 

@@ -4,6 +4,7 @@ style, the validation cases, resuming, and a tiny training run on human strokes.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +13,9 @@ import torch
 
 from pipeline.train import compose_plain
 from stages.keypoints.training import category_split, train, vector_pool
-from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
+from stages.keypoints.training.generator import drawing_from_strokes
 from stages.keypoints.training.human_strokes import read_stroke3
-from stages.keypoints.training.labels import LabelRules
+from tests.conftest import train_configs
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
@@ -87,15 +88,16 @@ def test_thin_aliased_style_is_thin_and_labels_no_corner_on_a_circle():
     t = np.linspace(0, 2 * np.pi, 400)
     circle = [np.stack([100 + 70 * np.cos(t), 100 + 70 * np.sin(t)], 1)]
     arc = [np.stack([100 + 70 * np.cos(t[:200]), 100 + 70 * np.sin(t[:200])], 1)]
-    cfg = GeneratorConfig(thin_prob=1.0)
+    generator, rules = train_configs()
+    cfg = replace(generator, thin_prob=1.0)
     for strokes in (circle, arc):
-        s = drawing_from_strokes(rng, strokes, (200, 200), cfg, LabelRules())
+        s = drawing_from_strokes(rng, strokes, (200, 200), cfg, rules)
         assert max(float(np.max(w)) for w in s.widths) <= 2.2
         assert 5 not in s.types.tolist()
     assert sorted(s.types.tolist()) == [1, 1]
     # hard-edged or coarsely anti-aliased: few distinct grey levels along the ink
     levels = [len(np.unique(np.round(drawing_from_strokes(np.random.default_rng(k), circle, (200, 200), cfg,
-                                                         LabelRules()).grey, 3))) for k in range(6)]
+                                                         rules).grey, 3))) for k in range(6)]
     assert min(levels) < 40
 
 

@@ -155,6 +155,7 @@ def _write_ndjson(path, n):
 def test_vector_samples_skip_renders_and_labels(tmp_path):
     """Human-stroke training drawings: the first ``skip`` drawings never appear, each is styled
     ``renders`` times on a canvas within ``size``, and its keypoints come from the label rules."""
+    from stages.config import from_section
     from stages.keypoints.training import vector_samples
     from stages.keypoints.training.generator import GeneratorConfig
     from stages.keypoints.training.labels import LabelRules
@@ -162,8 +163,8 @@ def test_vector_samples_skip_renders_and_labels(tmp_path):
     ndjson = tmp_path / "doodles.ndjson"
     _write_ndjson(ndjson, 3)
     train_cfg = yaml.safe_load((CONF / "train" / "default.yaml").read_text())
-    gcfg = GeneratorConfig.from_dict(train_cfg["generator"])
-    rules = LabelRules.from_dict(train_cfg["labels"])
+    gcfg = from_section(GeneratorConfig, train_cfg["generator"], "train.generator")
+    rules = from_section(LabelRules, train_cfg["labels"], "train.labels")
     vcfg = {"files": [str(tmp_path / "*.ndjson")], "skip": 1, "renders": 2, "size": [100, 140]}
     samples = list(vector_samples(vcfg, np.random.default_rng(0), gcfg, rules))
     assert len(samples) == 4  # drawings 1 and 2, twice each

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,15 +20,18 @@ from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
 from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.network import KeypointNet, NetConfig
-from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate, render_strokes
+from stages.keypoints.training.generator import drawing_from_strokes, generate, render_strokes
 from stages.keypoints.training.human_strokes import read_quickdraw_ndjson, read_svg_strokes
-from stages.keypoints.training.labels import LabelRules, label_keypoints
+from stages.keypoints.training.labels import label_keypoints
 from stages.keypoints.training.targets import asymmetric_l1, gaussian_heatmaps, keypoint_loss
+from tests.conftest import train_configs
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT / ".." / "shared"
 CONF = ROOT / "conf"
-RULES = LabelRules()
+GENERATOR, RULES = train_configs()
+TINY_NET = NetConfig(stem_mid=4, level_channels=(4, 8, 8, 8), bottleneck_blocks=1, negative_slope=0.1, class_width=0,
+                     class_dilations=(1,))
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -99,7 +103,7 @@ def test_two_strokes_meeting_end_to_end():
 
 
 def test_generator_is_deterministic_and_labelled():
-    cfg = GeneratorConfig()
+    cfg = GENERATOR
     a = generate(np.random.default_rng(3), cfg, RULES)
     b = generate(np.random.default_rng(3), cfg, RULES)
     assert np.array_equal(a.grey, b.grey) and np.array_equal(a.points, b.points)
@@ -132,7 +136,7 @@ def test_asymmetric_loss_penalises_misses_more():
 
 
 def test_network_and_loss_shapes():
-    net = KeypointNet(NetConfig(stem_mid=4, level_channels=(4, 8, 8, 8), bottleneck_blocks=1))
+    net = KeypointNet(TINY_NET)
     x = torch.rand(2, 1, 32, 48)
     final, inter = net(x)
     assert final.shape == (2, 4, 32, 48)
@@ -183,7 +187,7 @@ def test_network_input_normalisation():
 
 def test_tiles_blend_without_seams():
     torch.manual_seed(0)
-    net = KeypointNet(NetConfig(stem_mid=4, level_channels=(4, 8, 8, 8), bottleneck_blocks=1)).eval()
+    net = KeypointNet(TINY_NET).eval()
     x = network_input(synthetic.tee(size=100).grey, 0.5)
     whole = predict_heatmaps(net, x, 4096, 64)
     tiled = predict_heatmaps(net, x, 64, 32)
@@ -262,7 +266,7 @@ def test_shipped_model_gives_no_corner_on_thin_aliased_smooth_curves():
         strokes = [np.stack([300 + rng.uniform(150, 230) * np.cos(t), 330 + rng.uniform(110, 170) * np.sin(t)], 1),
                    np.stack([200 + rng.uniform(50, 80) * np.cos(t), 140 + rng.uniform(40, 70) * np.sin(t)], 1),
                    np.stack([420 + 140 * u, 230 - rng.uniform(30, 90) * np.sin(np.pi * u)], 1)]
-        s = drawing_from_strokes(rng, strokes, (600, 600), GeneratorConfig(thin_prob=1.0), RULES)
+        s = drawing_from_strokes(rng, strokes, (600, 600), replace(GENERATOR, thin_prob=1.0), RULES)
         png = Image.fromarray((s.grey * 255).round().astype(np.uint8))
         buf = io.BytesIO()
         png.save(buf, format="PNG")

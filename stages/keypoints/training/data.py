@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from skimage.measure import approximate_polygon
 
+from stages.config import from_section
 from stages.keypoints.inference import dilate_band, network_input
 from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
 from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson, read_stroke3
@@ -73,8 +74,8 @@ class DrawingStream(torch.utils.data.IterableDataset):
         wid = info.id if info is not None else 0
         tc = self.cfg["train"]
         rng = np.random.default_rng([int(tc["seed"]), self.start, wid])
-        gcfg = GeneratorConfig.from_dict(tc["generator"])
-        rules = LabelRules.from_dict(tc["labels"])
+        gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
+        rules = from_section(LabelRules, tc["labels"], "train.labels")
         c = self.crop
         kp_prob = float(tc["keypoint_crop_prob"])
         vprob = float(tc.get("vector_prob") or 0.0)
@@ -123,8 +124,8 @@ def validation_set(cfg: dict, part: str = "generated") -> list[tuple[np.ndarray,
     """
     v = cfg["train"]["val"]
     rng = np.random.default_rng(int(v["seed"]))
-    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
-    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    gcfg = from_section(GeneratorConfig, cfg["train"]["generator"], "train.generator")
+    rules = from_section(LabelRules, cfg["train"]["labels"], "train.labels")
     if part == "generated":
         samples = [generate(rng, gcfg, rules) for _ in range(int(v["count"]))]
     else:

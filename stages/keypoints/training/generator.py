@@ -18,7 +18,7 @@ Points are (x, y), pixel units, origin at the top-left corner of the image.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -27,31 +27,27 @@ from scipy import ndimage
 from stages.keypoints.training.labels import LabelRules, label_keypoints
 
 
-@dataclass(frozen=True)
+@dataclass
 class GeneratorConfig:
     """Distribution of the procedural drawings (``conf/train/default.yaml`` ``generator``)."""
 
-    size_min: int = 192
-    size_max: int = 320
-    primitives_min: int = 3
-    primitives_max: int = 10
-    width_min: float = 1.0
-    width_max: float = 12.0
-    width_log_mean: float = 1.0      # log(px) of the typical base width (e ≈ 2.7 px)
-    width_log_std: float = 0.55
-    width_vary_prob: float = 0.3     # per-stroke widths differ within a drawing
-    pressure_prob: float = 0.4       # width modulated along the stroke, tapered ends
-    jitter_px: float = 0.8           # hand tremor amplitude (low-frequency), px
-    pencil_prob: float = 0.5
-    blur_max: float = 1.0            # Gaussian blur sigma, px
-    paper_noise_max: float = 0.06    # std of paper noise (1 = black-to-white)
-    ink_min: float = 0.35            # lightest ink darkness (pencil)
-    gap_max: float = 0.6             # T-ends stop short / overshoot by up to this × width
-    thin_prob: float = 0.0           # share of drawings in thin grey aliased ink (1–2 px, hard edges)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "GeneratorConfig":
-        return cls(**{f.name: type(f.default)(d[f.name]) for f in fields(cls)})
+    size_min: int
+    size_max: int
+    primitives_min: int
+    primitives_max: int
+    width_min: float
+    width_max: float
+    width_log_mean: float     # log(px) of the typical base width (e ≈ 2.7 px)
+    width_log_std: float
+    width_vary_prob: float    # per-stroke widths differ within a drawing
+    pressure_prob: float      # width modulated along the stroke, tapered ends
+    jitter_px: float          # hand tremor amplitude (low-frequency), px
+    pencil_prob: float
+    blur_max: float           # Gaussian blur sigma, px
+    paper_noise_max: float    # std of paper noise (1 = black-to-white)
+    ink_min: float            # lightest ink darkness (pencil)
+    gap_max: float            # T-ends stop short / overshoot by up to this × width
+    thin_prob: float          # share of drawings in thin grey aliased ink (1–2 px, hard edges)
 
 
 @dataclass

@@ -40,18 +40,15 @@ from stages.geometry import point_at_arc, resample_uniform
 from stages.keypoints.codes import CORNER, ENDPOINT, JUNCTION
 
 
-@dataclass(frozen=True)
+@dataclass
 class LabelRules:
     """Thresholds of the labelling rules (``conf/train/default.yaml`` ``labels``)."""
 
-    min_radius: float = 2.0
-    corner_turn_deg: float = 45.0
-    crossing_min_deg: float = 37.0
-    step: float = 0.5
+    min_radius: float
+    corner_turn_deg: float
+    crossing_min_deg: float
+    step: float
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "LabelRules":
-        return cls(**{k: float(d[k]) for k in ("min_radius", "corner_turn_deg", "crossing_min_deg", "step")})
 
 
 def _at(points: np.ndarray, arc: np.ndarray, s: np.ndarray | float, closed: bool) -> np.ndarray:

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stages.config import from_section
 from stages.evaluate.keypoints import MatchResult, match_keypoints
 from stages.keypoints.inference import find_keypoints
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
@@ -160,7 +161,7 @@ def train(cfg: dict) -> dict:
     device = torch.device(dev_name)
     if device.type == "cpu" and tc.get("cpu_threads"):
         torch.set_num_threads(int(tc["cpu_threads"]))
-    net_cfg = NetConfig.from_dict(tc["network"])
+    net_cfg = from_section(NetConfig, tc["network"], "train.network")
     model = KeypointNet(net_cfg).to(device)
     steps = int(tc["steps"])
     budget_s = float(tc["schedule_minutes"]) * 60 if tc.get("schedule_minutes") else None
@@ -327,8 +328,8 @@ def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: i
         bool (N, patch, patch).
     """
     rng = np.random.default_rng(seed)
-    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
-    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    gcfg = from_section(GeneratorConfig, cfg["train"]["generator"], "train.generator")
+    rules = from_section(LabelRules, cfg["train"]["labels"], "train.labels")
     r = patch // 2
     feats, classes, nears = [], [], []
     model.eval()
@@ -374,7 +375,7 @@ def train_class_branch(cfg: dict) -> dict:
     out = Path(tc["out_dir"])
     out.mkdir(parents=True, exist_ok=True)
     ck = torch.load(tc["init_weights"], map_location="cpu", weights_only=False)
-    net_cfg = NetConfig.from_dict(tc["network"])
+    net_cfg = from_section(NetConfig, tc["network"], "train.network")
     old = NetConfig.from_dict(ck["network"])
     if (old.stem_mid, old.level_channels, old.bottleneck_blocks) != (net_cfg.stem_mid, net_cfg.level_channels,
                                                                      net_cfg.bottleneck_blocks):

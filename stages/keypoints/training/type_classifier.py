@@ -12,6 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stages.config import from_section
 from stages.keypoints.training.data import _vector_files, vector_samples, vector_split
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
@@ -29,8 +30,8 @@ def _typing_samples(cfg: dict, count: int, seed: int, vector: bool):
     stages.keypoints.training.generator.Sample
     """
     rng = np.random.default_rng(seed)
-    gcfg = GeneratorConfig.from_dict(cfg["train"]["generator"])
-    rules = LabelRules.from_dict(cfg["train"]["labels"])
+    gcfg = from_section(GeneratorConfig, cfg["train"]["generator"], "train.generator")
+    rules = from_section(LabelRules, cfg["train"]["labels"], "train.labels")
     for _ in range(count):
         yield generate(rng, gcfg, rules)
     if vector:

@@ -1,0 +1,118 @@
+"""The ``train`` config group (``conf/train/default.yaml``) as dataclasses, one field per key.
+
+:class:`TrainConfig` is registered as a Hydra structured config (:mod:`pipeline.schema`), and
+``python -m pipeline.train --plain`` checks its YAML with :func:`stages.config.from_section`, so the
+YAML and these classes cannot disagree. The training code reads the plain dict; the sections with a
+class of their own (``network``, ``generator``, ``labels``) are built with ``from_section`` where used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from stages.keypoints.network import NetConfig
+from stages.keypoints.training.generator import GeneratorConfig
+from stages.keypoints.training.labels import LabelRules
+
+
+@dataclass
+class ValConfig:
+    """``train.val``: the fixed validation drawings and how often they are scored."""
+
+    count: int
+    seed: int
+    vector_count: int
+    every: int
+
+
+@dataclass
+class ClassBranchConfig:
+    """``train.class_branch``: re-training the class branch alone on a frozen detector."""
+
+    drawings: int
+    seed: int
+    val_drawings: int
+    val_seed: int
+    patch: int
+    supervised_margin: int
+    epochs: int
+    batch_size: int
+    lr: float
+    balance_power: float
+
+
+@dataclass
+class TypeClassifierConfig:
+    """``train.type_classifier``: the keypoint typing perceptron (stages/keypoints/valence.py)."""
+
+    drawings: int
+    seed: int
+    val_drawings: int
+    val_seed: int
+    hidden: int
+    epochs: int
+    lr: float
+    weight_decay: float
+    balance_power: float
+    vector: bool
+    vector_drawings: int | None
+
+
+@dataclass
+class VectorConfig:
+    """``train.vector``: the human strokes (Quick, Draw! categories, Omniglot stroke-3 symbols)."""
+
+    files: list[str]
+    holdout: int
+    split_seed: int
+    skip: int
+    stroke3: list[str]
+    stroke3_prob: float
+    stroke3_size: list[int]
+    stroke3_simplify: float
+    renders: int
+    size: list[int]
+
+
+@dataclass
+class TrainConfig:
+    """The ``train`` config group (``conf/train/default.yaml``), one field per key."""
+
+    seed: int
+    out_dir: str
+    resume: bool
+    device: str
+    cpu_threads: int
+    amp: bool
+    cpu_amp: bool
+    channels_last: bool
+    steps: int
+    schedule_minutes: float | None
+    batch_size: int
+    lr: float
+    weight_decay: float
+    crop_schedule: list[Any]      # [fraction of steps, crop side px] pairs
+    crops_per_image: int
+    keypoint_crop_prob: float
+    init_weights: str | None
+    init_reset: list[str]
+    train_only: list[str]
+    num_workers: Any              # a count, or "auto"
+    sigma: float
+    loss_weights: list[float]
+    fp_weight: float
+    class_ce_weight: float
+    band_dilation: int
+    log_every: int
+    checkpoint_every: int
+    max_minutes: float | None
+    val: ValConfig
+    network: NetConfig
+    class_branch: ClassBranchConfig
+    labels: LabelRules
+    generator: GeneratorConfig
+    type_classifier: TypeClassifierConfig
+    vector: VectorConfig
+    vector_prob: float
+    vector_crops_per_image: int
