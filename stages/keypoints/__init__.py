@@ -111,6 +111,10 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         name = f"{path.name}@{_file_hash(path)}"
     model.eval()
+    # Channels-last convolutions run the full network about 30 % faster on one CPU thread (same
+    # heatmaps to 1e-5; tests/benchmarks/bench_keypoints.py). Inference only: with bf16 training it
+    # gives NaN gradients (train.channels_last).
+    model.to(memory_format=torch.channels_last)
     _MODELS[key] = (model, name)
     return model, name
 
