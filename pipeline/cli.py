@@ -203,6 +203,11 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
                 if debug and r.detail:
                     console.print(r.detail, highlight=False)
                 break
+    for image, per in batch.results.items():
+        for stage in batch.stages:
+            r = per.get(stage)
+            for note in (r.warnings if r is not None else ()):
+                console.print(f"[yellow]warning[/] {image}: {stage}: {note}", highlight=False, soft_wrap=True)
     for image, files in batch.outputs.items():
         console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True)
 

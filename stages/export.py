@@ -102,7 +102,7 @@ endpoint F1 0.909 (unchanged median, mean 0.858 → 0.864), junction F1 0.831 (u
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -143,6 +143,7 @@ class ExportParams:
     collapse: bool
     collapse_max_px: float
     collapse_max_widths: float
+    max_curves: int
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "ExportParams":
@@ -169,7 +170,8 @@ class ExportParams:
                     overshoot_clearance=float(cfg["overshoot"]["clearance"]),
                     collapse=bool(cfg["collapse"]["enabled"]),
                     collapse_max_px=float(cfg["collapse"]["max_px"]),
-                    collapse_max_widths=float(cfg["collapse"]["max_widths"]))
+                    collapse_max_widths=float(cfg["collapse"]["max_widths"]),
+                    max_curves=int(cfg["max_curves"]))
         except KeyError as e:
             raise InputError(f"export config is missing key {e}") from None
         if p.stroke_width <= 0 or not 0 <= p.precision <= 8 or p.bezier_tolerance <= 0:
@@ -1074,6 +1076,13 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                        "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
                        "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
                        "width": float(np.mean(w)) if len(w) else None})
+    notes = []
+    if len(curves) > params.max_curves:
+        # A guard, not a choice: the edits below are near-linear, but a drawing with more curves than
+        # this is not a line drawing we can tidy in bounded time; its curves are written as selected.
+        notes.append(f"{len(curves)} curves, more than export.max_curves ({params.max_curves}): written as "
+                     "selected, without link contraction, joins, spurs or overshoot extension")
+        params = replace(params, collapse=False, join=False, spurs=False, overshoot=False)
     if params.collapse:
         curves = collapse_short_links(curves, params.collapse_max_px, params.collapse_max_widths)
     if params.join:
@@ -1099,4 +1108,4 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     data = {"svg": svg_document(width, height, curves, ds, params), "curves": curves}
     if params.bezier:
         data["bezier_svg"] = svg_document(width, height, curves, bds, params)
-    return Artifact(data=data)
+    return Artifact(data=data, notes=notes)
