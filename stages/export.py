@@ -398,13 +398,9 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
             return met
         return None
 
-    heap = list(alive)           # candidates, by curve order; each is checked again when it comes up
-    while heap:
-        i = heap[0]
-        met = links_to(i) if i in alive else None
-        if met is None:
-            heapq.heappop(heap)      # pushed again when a contraction nearby could change that
-            continue
+    heap = list(alive)           # candidates, by curve order
+    while (found := _first_in_order(heap, alive, links_to)) is not None:
+        i, met = found
         link = alive.pop(i)
         ends.remove(i, link)
         mid = 0.5 * (link["points"][0] + link["points"][-1])
@@ -448,6 +444,22 @@ _SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology put
 def _end_state(c: dict, f: int) -> tuple:
     """(type, keypoint, point) of end f of curve c."""
     return c["end_types"][f], c["end_keypoints"][f], c["points"][0 if f == 0 else -1]
+
+
+def _first_in_order(heap: list, alive: dict, test) -> tuple | None:
+    """Pop curves off a min-heap of list positions until one passes ``test``: ``(curve, answer)``.
+
+    ``test`` answers None for a curve that is no candidate now.  The editing loops push a curve again
+    whenever an edit near it could change its answer, so the first curve that passes now is the one a
+    rescan of the whole list would find first; removed curves and duplicates on the heap are skipped.
+    """
+    import heapq
+
+    while heap:
+        i = heapq.heappop(heap)
+        if i in alive and (answer := test(i)) is not None:
+            return i, answer
+    return None
 
 
 class _PointGrid:
@@ -652,13 +664,9 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                 return e
         return None
 
-    heap = list(alive)             # candidates, by list order; each is checked again when it comes up
-    while heap:
-        i = heap[0]
-        e = spur_end(i) if i in alive else None
-        heapq.heappop(heap)
-        if e is None:
-            continue                   # pushed again when an edit nearby could change that
+    heap = list(alive)             # candidates, by list order
+    while (found := _first_in_order(heap, alive, spur_end)) is not None:
+        i, e = found
         spur = alive[i]
         done.add(spur["id"])
         t_j, k, p = _end_state(spur, e)
