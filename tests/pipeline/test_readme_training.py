@@ -96,13 +96,14 @@ def test_readme_detector_and_bench_commands_run(tmp_path):
 
 
 @pytest.mark.slow
-def test_polyvec_train_names_its_weights_and_leaves_the_folder_clean(tmp_path):
-    """Issue 18 items 10 and 14: no ``outputs/<date>/<time>/.hydra/`` in the working folder, and one
-    line that says where the weights went."""
+@pytest.mark.parametrize("sweep", [False, True])
+def test_polyvec_train_names_its_weights_and_leaves_the_folder_clean(tmp_path, sweep):
+    """Issue 18 items 10 and 14: no ``outputs/<date>/<time>/.hydra/`` (nor a sweep's
+    ``multirun.yaml``) in the working folder, and one line that says where the weights went."""
     _ndjson(tmp_path / "qd", ["thing0", "thing1"])
     work, out = tmp_path / "cwd", tmp_path / "weights"
     work.mkdir()
-    argv = _adapt(f"polyvec-train train.steps=1 train.out_dir={out}", tmp_path)
+    argv = _adapt(f"polyvec-train {'-m ' if sweep else ''}train.steps=1 train.out_dir={out}", tmp_path)
     argv = [sys.executable, "-m", "pipeline.train"] + argv[1:]
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
     r = subprocess.run(argv, cwd=work, env=env, capture_output=True, text=True, timeout=600)
