@@ -235,10 +235,10 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     # 3. insignificant components (before the loop search, the costly part)
     edges = _drop_small(xy, width, edges, cc.min_component_area)
     # 4. thickness loops
-    edges, n_loops, searches_left = cleanup.contract_thickness_loops(xy, edges, band, cc.max_loop_background,
-                                                                     cc.max_cycle_vertices, cc.max_loop_searches)
+    edges, n_loops, cut = cleanup.contract_thickness_loops(xy, edges, band, cc.max_loop_background,
+                                                           cc.max_cycle_vertices, cc.max_loop_searches)
     stats["loops_contracted"] = n_loops
-    if searches_left == 0:
+    if cut:
         notes.append(f"thickness-loop search stopped after graph.cleanup.max_loop_searches "
                      f"({cc.max_loop_searches}) cycle searches: {n_loops} loops contracted, others kept")
     # 5. spurs inside the stroke

@@ -279,8 +279,8 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
         The remaining edges.
     contracted : int
         Number of loops contracted.
-    searches_left : int or None
-        Searches left of ``max_searches`` (0: the guard stopped the contraction).
+    cut : bool
+        Whether ``max_searches`` stopped the contraction with edges left to search.
     """
     n = len(xy)
     adj = _adjacency(n, edges)
@@ -310,7 +310,7 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
                 continue
             if max_searches is not None:
                 if max_searches <= 0:
-                    return _edges_from_adj(adj), contracted, 0
+                    return _edges_from_adj(adj), contracted, True
                 max_searches -= 1
             path = _shortest_cycle_path(adj, a, b, max_cycle_vertices)
             if path is None:
@@ -326,7 +326,7 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
             changed = True
         if not changed:
             break
-    return _edges_from_adj(adj), contracted, max_searches
+    return _edges_from_adj(adj), contracted, False
 
 
 def _contract(adj, xy, cycle):
