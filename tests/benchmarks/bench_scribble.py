@@ -33,7 +33,7 @@ with initialize_config_module(config_module="conf", version_base=None):
     cfg = compose(config_name="config", overrides=[f"store.path={store}", "runtime.cluster=sync"])
 batch = run_batch([image], cfg)
 per = batch.results[image]
-print(json.dumps({s: [r.status, round(r.duration_s, 3), r.error, r.key] for s, r in per.items()}))
+print(json.dumps({s: [r.status, round(r.duration_s, 3), r.error, r.key, list(r.warnings)] for s, r in per.items()}))
 """
 
 
@@ -91,6 +91,9 @@ def main() -> None:
             failed = [f"{s}: {v[2]}" for s, v in stages.items() if v[0] == "failed"]
             if failed:
                 print("    failed: " + "; ".join(failed))
+            for s, v in stages.items():                     # guards that bound (Artifact.notes)
+                for note in v[4]:
+                    print(f"    warning: {s}: {note}")
         stages = json.loads(keys_file.read_text())
         if all(stages.get(s, ["failed"])[0] in ("computed", "cached") for s in ("prep", "topology", "flow", "select")):
             sec, n_curves = export_seconds(store, {s: v[3] for s, v in stages.items()})
