@@ -128,6 +128,7 @@ class ExportParams:
     join_tangent_px: float
     join_margin_deg: float
     join_same_branch_deg: float
+    join_max_ends: int
     spurs: bool
     spur_max_px: float
     spur_max_widths: float
@@ -157,6 +158,7 @@ class ExportParams:
                     join_tangent_px=float(cfg["join"]["tangent_px"]),
                     join_margin_deg=float(cfg["join"]["margin_deg"]),
                     join_same_branch_deg=float(cfg["join"]["same_branch_deg"]),
+                    join_max_ends=int(cfg["join"]["max_ends"]),
                     spurs=bool(cfg["spurs"]["enabled"]), spur_max_px=float(cfg["spurs"]["max_px"]),
                     spur_max_widths=float(cfg["spurs"]["max_widths"]),
                     spur_max_turn_deg=float(cfg["spurs"]["max_turn_deg"]),
@@ -209,7 +211,8 @@ def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarr
 
 
 def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: float,
-                       margin_deg: float = 0.0, same_branch_deg: float = 0.0) -> list[dict]:
+                       margin_deg: float = 0.0, same_branch_deg: float = 0.0, max_ends: int | None = None,
+                       crowded: set | None = None) -> list[dict]:
     """Join curves that continue each other through a junction keypoint or a synthetic end.
 
     Parameters
@@ -226,6 +229,11 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
     same_branch_deg : float
         Other ends leaving within this angle of one of the two run along the same branch (overlapping
         curves) and do not count as other branches.
+    max_ends : int, optional
+        Guard: no join at a joint where more curve ends meet (the pair test costs the cube of their
+        number; a crossing has four ends, a blob of ink dozens).  None = no limit.
+    crowded : set, optional
+        Filled with the joints skipped by ``max_ends``.
 
     Returns
     -------
@@ -297,6 +305,10 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
             groups.pop(kk, None)
             return
         ends.sort()
+        if max_ends is not None and len(ends) > max_ends:
+            if crowded is not None:
+                crowded.add(kk)
+            return
         best = group_best(ends)
         if best is not None:
             # Ties go to the group whose first end comes first, as in a scan of the curve list.
@@ -1094,8 +1106,13 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if params.collapse:
         curves = collapse_short_links(curves, params.collapse_max_px, params.collapse_max_widths)
     if params.join:
+        crowded: set = set()
         curves = join_continuations(curves, params.join_max_turn_deg, params.join_tangent_px,
-                                    params.join_margin_deg, params.join_same_branch_deg)
+                                    params.join_margin_deg, params.join_same_branch_deg, params.join_max_ends,
+                                    crowded)
+        if crowded:
+            notes.append(f"{len(crowded)} joints where more than export.join.max_ends ({params.join_max_ends}) "
+                         "curve ends meet: no curves joined there")
     if params.spurs:
         curves = attach_spurs(curves, params.spur_max_px, params.spur_max_widths, params.spur_max_turn_deg,
                               params.join_tangent_px, params.spur_near_px, params.spur_by_valence)

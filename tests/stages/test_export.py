@@ -520,3 +520,25 @@ def test_collapsing_and_attaching_spurs_are_near_linear_in_the_number_of_curves(
     out = export.attach_spurs(spurs, 12.0, 4.0, 60.0, 5.0, 1.5)
     assert len(out) == 2 * n and sum(len(c["parts"]) == 2 for c in out) == n  # every spur attached
     assert calls["n"] <= 12 * len(spurs), calls["n"]
+
+
+def test_no_join_where_more_ends_meet_than_join_max_ends():
+    """Issue 18 item 4, the joins' guard: the pair test at a joint costs its number of ends cubed, so
+    past ``join.max_ends`` nothing is joined there and the joint is reported (run() says so)."""
+    c = np.array([32.0, 32.0])
+    # a straight bar through junction 9 (its halves continue each other), and four arms off to one side
+    arms = [_curve(c - [20, 0], c, [1, 3], [1, 9]), _curve(c, c + [20, 0], [3, 1], [9, 2])]
+    arms += [_curve(c, c + 20 * np.array([np.cos(a), np.sin(a)]), [3, 1], [9, 3 + k])
+             for k, a in enumerate(np.radians([50, 80, 110, 140]))]
+    assert len(export.join_continuations(arms, 35.0, 5.0, 10.0, 10.0)) == 5            # the bar is joined
+    crowded = set()
+    assert len(export.join_continuations(arms, 35.0, 5.0, 10.0, 10.0, 5, crowded)) == 6
+    assert crowded == {("k", 9)}
+    paths = [a["points"] for a in arms]
+    inputs = _inputs(paths, list(range(len(paths))))
+    for p, a in zip(inputs["topology"].data["paths"], arms):
+        p["end_types"], p["end_keypoints"] = a["end_types"], a["end_keypoints"]
+    art = export.run(_cfg(join={**CFG["join"], "max_ends": 5}), **inputs)
+    assert len(art.data["curves"]) == 6 and art.notes == [
+        "1 joints where more than export.join.max_ends (5) curve ends meet: no curves joined there"]
+    assert export.run(CFG, **inputs).notes == []
