@@ -202,7 +202,11 @@ def rasterise_polylines_cairo(polylines: Sequence[np.ndarray], shape: tuple[int,
     numpy.ndarray
         float64 (H, W) grey in [0, 1], 1 = white paper, on the 8-bit levels cairo wrote (times 1/255).
     """
-    import cairocffi as cairo
+    try:
+        import cairocffi as cairo
+    except OSError as exc:  # cairocffi is installed, the C library it loads is not
+        raise RuntimeError(f"the bench's rasteriser needs the system library libcairo2 (Debian: apt-get install "
+                           f"libcairo2): {exc}") from None
 
     h, w = int(shape[0]), int(shape[1])
     if width <= 0:
