@@ -248,6 +248,13 @@ def export_weights(model: KeypointNet, path: Path, record: dict) -> None:
     """Write the shippable checkpoint: fp16 weights, network config and a training record."""
     sd = {k: (v.half() if v.is_floating_point() else v) for k, v in model.state_dict().items()}
     _atomic_save({"network": model.cfg.to_dict(), "state_dict": sd, "record": record}, path)
+    say_weights(path)
+
+
+def say_weights(path: Path) -> None:
+    """One line naming the weights file just written (the user would otherwise have to search for it)."""
+    print(f"weights written to {Path(path).resolve()} (copy it to stages/keypoints/weights/ to ship it)",
+          flush=True)
 
 
 class _Log:
@@ -873,6 +880,7 @@ def train_type_classifier(cfg: dict) -> dict:
               "val_accuracy_argmax": float((np.argmax(vx[:, :3], 1) == vy).mean()),
               "config": tc, "torch": str(torch.__version__)}
     clf.save(out / "type_classifier.npz")
+    say_weights(out / "type_classifier.npz")
     (out / "type_classifier.json").write_text(json.dumps(record, indent=2))
     print(f"type classifier: {record['keypoints']} keypoints ({len(vfiles)} vector files), generated validation accuracy "
           f"{record['val_accuracy']:.3f} (class-map argmax {record['val_accuracy_argmax']:.3f}), "
@@ -918,11 +926,14 @@ def main() -> None:
     import hydra
     from omegaconf import OmegaConf
 
+    from pipeline.cli import no_stray_multirun
+
     @hydra.main(version_base=None, config_path="pkg://conf", config_name="train_app")
     def _app(cfg) -> None:
         train(OmegaConf.to_container(cfg, resolve=True))
 
-    _app()
+    with no_stray_multirun():
+        _app()
 
 
 if __name__ == "__main__":

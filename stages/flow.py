@@ -118,7 +118,7 @@ References
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -148,6 +148,7 @@ class FlowParams:
     step_d0: float
     step_min: float
     step_max: float
+    max_vertices: int
 
     @classmethod
     def from_cfg(cls, cfg: dict) -> "FlowParams":
@@ -160,7 +161,8 @@ class FlowParams:
                     resample_factor=float(cfg["resample_factor"]),
                     sigma_scale=float(b["sigma_scale"]), sigma_min=float(b["sigma_min"]),
                     barrier_spacing=float(b["spacing"]), barrier_cutoff=float(b["cutoff"]),
-                    step_d0=float(s["d0"]), step_min=float(s["min"]), step_max=float(s["max"]))
+                    step_d0=float(s["d0"]), step_min=float(s["min"]), step_max=float(s["max"]),
+                    max_vertices=int(cfg["max_vertices"]))
         except KeyError as e:
             raise InputError(f"flow config is missing key {e}") from None
         if p.iterations < 0 or p.dt <= 0 or p.lam < 0 or p.eps < 0 or p.spacing <= 0:
@@ -903,6 +905,15 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         xys.append(xy)
         widths.append(wd)
         interest.append(dd)
+    notes = []
+    # Guard: the flow costs iterations × vertices; past max_vertices (the paths resampled at
+    # spacing) the iterations shrink so that their product stays within iterations × max_vertices.
+    n_vert = sum(float(np.hypot(*np.diff(xy, axis=0).T).sum()) / params.spacing + 1.0 for xy in xys)
+    if n_vert > params.max_vertices and params.iterations > 1:
+        its = max(1, int(params.iterations * params.max_vertices / n_vert))
+        notes.append(f"about {n_vert:.0f} path vertices, more than flow.max_vertices ({params.max_vertices}): "
+                     f"{its} iterations instead of {params.iterations}")
+        params = replace(params, iterations=its)
     res = polyvector_flow(c0, c2, xys, widths, interest, params)
     flat, off = pack_ragged(res.curves, dtype=np.float64)
     return Artifact(
@@ -912,4 +923,4 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
               "resamples": int(res.resamples.sum()),
               "rejected_steps": int(res.rejected.sum()),
               "failed": [int(p["id"]) for p, f in zip(paths, res.failed) if f],
-              "n_vertices": int(len(flat))})
+              "n_vertices": int(len(flat))}, notes=notes)

@@ -182,11 +182,20 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         heatmaps[0] = h1 / (1 + len(ensemble))
     heatmaps, points, types, scores = keypoints_from_heatmaps(
         cfg, heatmaps, np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None)
+    notes = []
+    cap = int(cfg["max_keypoints"])
+    if len(points) > cap:
+        # A guard: the topology's search grows with the keypoints (paths between pairs of key
+        # vertices), so a noise field of peaks keeps only its strongest ones, in their order.
+        keep = np.sort(np.argsort(-scores, kind="stable")[:cap])
+        notes.append(f"{len(points)} keypoints, more than keypoints.max_keypoints ({cap}): kept the {cap} "
+                     "strongest")
+        points, types, scores = points[keep], types[keep], scores[keep]
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
-                    data={"points": data_points, "weights": name, "count": len(data_points)})
+                    data={"points": data_points, "weights": name, "count": len(data_points)}, notes=notes)
 
 
 def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None
