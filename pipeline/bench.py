@@ -304,8 +304,8 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
         The row (flat, JSON-friendly) and picture data (grey, curves, markers).
     """
     from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
-    from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, render_ink,
-                                       score_raster, stage_timings)
+    from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, gt_scale,
+                                       render_ink, score_raster, stage_timings)
 
     rparams = from_section(RasterParams, bcfg["raster"], "bench.raster")
     tparams = from_section(TopologyParams, bcfg["topology"], "bench.topology")
@@ -337,8 +337,10 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
         fid = score_raster(ink, fidelity_reference(input_ink, rparams), rparams, prefix="fid_")
         row.update({k: v for k, v in fid.items() if k != "fid_blank"})
         if case.strokes is not None:
-            gt_ink = render_ink(case.strokes, shape, rparams)
-            row.update({k: v for k, v in score_raster(ink, gt_ink, rparams).items() if k != "blank"})
+            scale = gt_scale(shape, rparams)        # the benchmark's long edge (1000 px)
+            gt_ink = render_ink(case.strokes, shape, rparams, scale)
+            out_ink = render_ink(curves, shape, rparams, scale)
+            row.update({k: v for k, v in score_raster(out_ink, gt_ink, rparams, scale=scale).items() if k != "blank"})
         if fid["fid_blank"] and not row["error"]:
             row["error"] = "blank output (no ink after rasterising the curves)"
         topo = curve_topology(curves, width, tparams)

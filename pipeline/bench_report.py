@@ -15,6 +15,37 @@ from typing import Any
 import numpy as np
 
 
+def _is_distance(col: str) -> bool:
+    return col in ("chamfer", "hausdorff") or col.endswith(("_chamfer", "_hausdorff"))
+
+
+def column_unit(col: str) -> str:
+    """The unit a table or report column is shown in (every column has one).
+
+    Chamfer and Hausdorff are stored as fractions of the long edge L (metrics.md §2.4) and shown in
+    per-mille of L (‰ L: pixels at the benchmark's L = 1000, the unit of the F1 tolerances), so a
+    0.3-px Chamfer reads 0.300, not 0.000.
+    """
+    base = col[4:] if col.startswith("fid_") else col
+    if _is_distance(base):
+        return "‰ L"
+    if base.startswith(("f1_", "kp_f1", "precision", "recall")) or base.endswith(("_f1", "_acc")) \
+            or "_precision" in base or "_recall" in base:
+        return "0–1"
+    if base.startswith("t_") or base.endswith("_s"):
+        return "s"
+    if base.endswith("_mb"):
+        return "MB"
+    if base.endswith("_px") or base == "width":
+        return "px"
+    return "count"
+
+
+def _head(col: str) -> str:
+    """A column heading with its unit."""
+    return f"{col} [{column_unit(col)}]"
+
+
 def _fmt(v: Any, col: str = "") -> str:
     if isinstance(v, bool):
         return "yes" if v else ""
@@ -23,8 +54,8 @@ def _fmt(v: Any, col: str = "") -> str:
     if isinstance(v, (float, np.floating)):
         if not math.isfinite(v):
             return "–"
-        if col in ("chamfer", "hausdorff") or col.endswith(("_chamfer", "_hausdorff")):
-            return f"{v:.5f}"
+        if _is_distance(col):
+            return f"{1000.0 * v:.3f}"      # ‰ of the long edge (column_unit)
         if abs(v) >= 100:
             return f"{v:.0f}"
         return f"{v:.3f}" if abs(v) < 10 else f"{v:.1f}"
@@ -73,7 +104,7 @@ def print_tables(tables: dict[str, list[dict]], console) -> None:
         t.add_column("cases", justify="right")
         t.add_column("fail", justify="right")
         for c in cols:
-            t.add_column(c, justify="right")
+            t.add_column(_head(c), justify="right")
         for e in entries:
             cells = [_summary_cell(e[c], c) for c in cols]
             t.add_row(e["group"], str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
@@ -126,7 +157,10 @@ def write_report(rows: list[dict], tables: dict, pictures: dict[str, str], out: 
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
-    (out / "summary.json").write_text(json.dumps(dict(extra, tables=tables), indent=1, default=_json_default))
+    # Units of the stored values (Chamfer and Hausdorff as fractions of L; the tables show them in ‰ L).
+    units = {c: "fraction of L" if _is_distance(c) else column_unit(c) for c in cols}
+    (out / "summary.json").write_text(json.dumps(dict(extra, tables=tables, units=units), indent=1,
+                                                 default=_json_default))
     if bcfg["report"]["html"]:
         (out / "report.html").write_text(html_report(rows, tables, pictures, bcfg, extra))
 
@@ -160,7 +194,7 @@ def html_report(rows: list[dict], tables: dict, pictures: dict[str, str], bcfg: 
         cols = [k for k in entries[0] if k not in ("group", "cases", "failures") and any(e[k]["n"] for e in entries)]
         pooled = any(e[c].get("pooled") for e in entries for c in cols)
         parts.append(f"<h2>{esc(title)}{'' if pooled else ': median (mean)'}</h2><table><tr><th>group</th><th>cases</th><th>fail</th>"
-                     + "".join(f"<th>{esc(c)}</th>" for c in cols) + "</tr>")
+                     + "".join(f"<th>{esc(_head(c))}</th>" for c in cols) + "</tr>")
         for e in entries:
             parts.append(f"<tr><td>{esc(e['group'])}</td><td>{e['cases']}</td><td>{e['failures']}</td>"
                          + "".join(f"<td>{_summary_cell(e[c], c)}</td>" for c in cols)
@@ -174,7 +208,7 @@ def html_report(rows: list[dict], tables: dict, pictures: dict[str, str], bcfg: 
         parts.append(f"<div class='case'><h3>{esc(r['name'])} <small>({esc(r['group'])})</small></h3>")
         if r.get("error"):
             parts.append(f"<p class='err'>{esc(str(r['error']))}</p>")
-        parts.append("<table><tr>" + "".join(f"<th>{esc(c)}</th>" for c in cells) + "</tr><tr>"
+        parts.append("<table><tr>" + "".join(f"<th>{esc(_head(c))}</th>" for c in cells) + "</tr><tr>"
                      + "".join(f"<td>{_fmt(r[c], c)}</td>" for c in cells) + "</tr></table>")
         if r["name"] in pictures:
             parts.append(f"<img src='{esc(pictures[r['name']])}' loading='lazy'>")

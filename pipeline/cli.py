@@ -13,6 +13,7 @@ import glob
 import os
 import re
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
@@ -203,6 +204,11 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
                 if debug and r.detail:
                     console.print(r.detail, highlight=False)
                 break
+    for image, per in batch.results.items():
+        for stage in batch.stages:
+            r = per.get(stage)
+            for note in (r.warnings if r is not None else ()):
+                console.print(f"[yellow]warning[/] {image}: {stage}: {note}", highlight=False, soft_wrap=True)
     for image, files in batch.outputs.items():
         console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True)
 
@@ -424,6 +430,22 @@ def _first_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
+@contextmanager
+def no_stray_multirun():
+    """Remove the ``multirun.yaml`` a sweep (``-m``) leaves in the working directory.
+
+    Hydra's sweeper always saves it into the sweep folder, which is the working directory (jobs do
+    not chdir): the user's folder keeps nothing it did not have (one that was there stays).
+    """
+    stray = Path("multirun.yaml")
+    had_stray = stray.exists()
+    try:
+        yield
+    finally:
+        if not had_stray and stray.exists():
+            stray.unlink()
+
+
 class ExitCode:
     """Exit status a Hydra app records across (multirun) jobs: 1 = some image failed, 2 = usage error."""
 
@@ -462,20 +484,15 @@ class ExitCode:
             print(f"{self.prog}: error: {exc}", file=sys.stderr)
             sys.exit(2)
         sys.argv[1:] = args
-        # Hydra's sweeper always saves multirun.yaml into the sweep folder, which is the working
-        # directory (jobs do not chdir): the user's folder keeps nothing it did not have.
-        stray = Path("multirun.yaml")
-        had_stray = stray.exists()
         try:
-            app()
+            with no_stray_multirun():
+                app()
         except KeyboardInterrupt:
             self.interrupted()
         finally:
             from pipeline.runner import close_client
 
             close_client()
-            if not had_stray and stray.exists():
-                stray.unlink()
         sys.exit(self.code)
 
     def interrupted(self) -> None:

@@ -55,6 +55,7 @@ class TaskResult:
     error: str | None = None
     detail: str | None = None
     duration_s: float = 0.0
+    warnings: tuple[str, ...] = ()  # the artifact's guard notes (computed now; a cached one keeps them in its manifest)
 
 
 @dataclass
@@ -252,9 +253,12 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
             "host": socket.gethostname(), "pid": os.getpid(), "libraries": library_versions(),
             "python": sys.version.split()[0],
         }
+        if artifact.notes:
+            manifest["warnings"] = list(artifact.notes)
         store.save(task.stage, task.key, artifact, manifest)
         _remember(task.stage, task.key, artifact)
-        return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration)
+        return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration,
+                          warnings=tuple(artifact.notes))
     except InputError as exc:
         return TaskResult(task.image, task.stage, task.key, "failed", error=str(exc),
                           duration_s=time.perf_counter() - t0)

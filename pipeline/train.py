@@ -69,11 +69,14 @@ def main() -> None:
     import hydra
     from omegaconf import OmegaConf
 
+    from pipeline.cli import no_stray_multirun
+
     @hydra.main(version_base=None, config_path="pkg://conf", config_name="train_app")
     def _app(cfg) -> None:
         train(OmegaConf.to_container(cfg, resolve=True))
 
-    _app()
+    with no_stray_multirun():
+        _app()
 
 
 if __name__ == "__main__":

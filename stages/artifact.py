@@ -18,10 +18,15 @@ class Artifact:
         Dense numeric data; the engine persists each entry as one zarr array.
     data : dict
         Small structured, JSON-serialisable data (lists, numbers, strings, nested dicts).
+    notes : list of str
+        One line per guard that bound while computing it (a cap on a count, an iteration or a size
+        that made the stage do less rather than blow up): the engine records them in the manifest
+        (``warnings``) and the CLI says each once.
     """
 
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     data: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.arrays[name]

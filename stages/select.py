@@ -415,7 +415,12 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     problem = build_problem(paths, coverage, energies + params.curve_cost, types, params, branches)
     chosen, status, objective = select_paths(problem, params)
     ids = [int(p["id"]) for p, c in zip(paths, chosen) if c]
-    return Artifact(data={
+    notes = []
+    if status not in ("optimal", "empty"):
+        # The guard is CBC's time limit: past it the best integer solution found, else the greedy
+        # fallback, is used; either way the selection is not proven optimal.
+        notes.append(f"selection not proven optimal ({status}; CBC stops at select.time_limit = {params.time_limit:g} s)")
+    return Artifact(notes=notes, data={
         "chosen": ids, "status": status, "objective": objective if math.isfinite(objective) else None,
         "counts": {"candidates": len(paths), "chosen": len(ids), "valence_constraints": int(problem.valence.shape[0]),
                    "coverage_constraints": int(problem.cover.shape[0]),

@@ -9,7 +9,10 @@ Implements shared/reference/metrics.md §2: both images are binarised (ink = 8-b
 - F1 at d   = harmonic mean of P = |a <= τ| / |a| and R = |b <= τ| / |b| with τ = d · L / 1000.
 
 Vectors are rasterised the way the benchmark normalises them (black, round caps and joins, stroke width
-0.001 × long edge, anti-aliased, on white), but by :func:`rasterise_polylines` instead of Inkscape.
+0.001 × long edge, anti-aliased, on white) by cairo (:func:`rasterise_polylines_cairo`, through
+cairocffi and the system's libcairo), the renderer of Inkscape, rsvg and cairosvg: the same coverage
+rule, so the same 8-bit grey levels at the ink threshold.  :func:`rasterise_polylines` (supersampled
+capsules) is kept for ``renderer: supersample``.
 
 Choices made on purpose
 -----------------------
@@ -42,6 +45,7 @@ __all__ = [
     "benchmark_stroke_width",
     "binarise",
     "rasterise_polylines",
+    "rasterise_polylines_cairo",
     "raster_metrics",
 ]
 
@@ -175,11 +179,70 @@ def rasterise_polylines(
     return 1.0 - coverage
 
 
+def rasterise_polylines_cairo(polylines: Sequence[np.ndarray], shape: tuple[int, int], width: float) -> np.ndarray:
+    """Polylines drawn by cairo, black on white, with round caps and joins (a normalised SVG's rendering).
+
+    Cairo is what Inkscape, rsvg and cairosvg rasterise SVG paths with, so this is the benchmark's
+    rendering itself rather than an approximation of it: each polyline is one path (``M`` then
+    ``L``s) stroked on its own, as each ``<path>`` of an SVG is, so a stroke overlapping itself
+    darkens no pixel twice while two strokes' anti-aliased edges composite one over the other.
+
+    Parameters
+    ----------
+    polylines : sequence of numpy.ndarray
+        Each (n, 2) in (x, y) pixel units, origin at the top-left corner of the image.  A single point
+        is drawn as a round dot (a zero-length segment with round caps).
+    shape : (H, W)
+        Output size.
+    width : float
+        Stroke width in pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W) grey in [0, 1], 1 = white paper, on the 8-bit levels cairo wrote (times 1/255).
+    """
+    try:
+        import cairocffi as cairo
+    except OSError as exc:  # cairocffi is installed, the C library it loads is not
+        raise RuntimeError(f"the bench's rasteriser needs the system library libcairo2 (Debian: apt-get install "
+                           f"libcairo2): {exc}") from None
+
+    h, w = int(shape[0]), int(shape[1])
+    if width <= 0:
+        raise ValueError("width must be > 0")
+    surface = cairo.ImageSurface(cairo.FORMAT_RGB24, w, h)
+    ctx = cairo.Context(surface)
+    ctx.set_source_rgb(1, 1, 1)
+    ctx.paint()
+    ctx.set_source_rgb(0, 0, 0)
+    ctx.set_line_width(float(width))
+    ctx.set_line_cap(cairo.LINE_CAP_ROUND)
+    ctx.set_line_join(cairo.LINE_JOIN_ROUND)
+    for pl in polylines:
+        p = np.asarray(pl, dtype=np.float64).reshape(-1, 2)
+        if len(p) == 0 or not np.all(np.isfinite(p)):
+            continue
+        if len(p) == 1:
+            p = np.vstack([p, p])
+        ctx.move_to(*p[0])
+        for x, y in p[1:].tolist():
+            ctx.line_to(x, y)
+        ctx.stroke()
+    surface.flush()
+    stride = surface.get_stride()
+    # RGB24 is one 32-bit word per pixel (xRGB, native byte order); the blue byte is the grey level.
+    data = np.frombuffer(surface.get_data(), np.uint8).reshape(h, stride)[:, :4 * w].reshape(h, w, 4)
+    blue = 0 if np.little_endian else 3
+    return data[..., blue].astype(np.float64) / 255.0
+
+
 def raster_metrics(
     test_ink: np.ndarray,
     gt_ink: np.ndarray,
     f1_permille: Sequence[float] = (2, 4, 6, 8, 10),
     f1_pixels: Sequence[float] = (),
+    pixel_scale: float = 1.0,
 ) -> dict:
     """Chamfer, Hausdorff and F1 of an output ink mask against a ground-truth ink mask (§2.3–2.4).
 
@@ -192,6 +255,9 @@ def raster_metrics(
     f1_pixels : sequence of float
         Extra tolerances in pixels (metrics.md §2.5 recommends them for small images); keys
         ``f1_<d>px``.
+    pixel_scale : float
+        The masks' pixels per pixel of ``f1_pixels`` (masks rendered at a multiple of the image's
+        size keep their pixel tolerances in pixels of the image).
 
     Returns
     -------
@@ -206,7 +272,7 @@ def raster_metrics(
         raise ValueError(f"masks must be 2-D of one shape, got {test_ink.shape} and {gt_ink.shape}")
     long_edge = float(max(test_ink.shape))
     tols = [(_key(d), d * long_edge / 1000.0) for d in f1_permille]
-    tols += [(_key(d) + "px", float(d)) for d in f1_pixels]
+    tols += [(_key(d) + "px", float(d) * pixel_scale) for d in f1_pixels]
     out: dict = {"ink_test": int(test_ink.sum()), "ink_gt": int(gt_ink.sum())}
     if out["ink_test"] == 0 or out["ink_gt"] == 0:
         out.update(blank=True, chamfer=math.nan, hausdorff=math.nan)

@@ -13,12 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.evaluate.raster import benchmark_stroke_width, binarise, rasterise_polylines, raster_metrics
 from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
+from stages.evaluate.raster import (benchmark_stroke_width, binarise, rasterise_polylines, rasterise_polylines_cairo,
+                                    raster_metrics)
 
 __all__ = [
     "RasterParams",
     "estimate_stroke_width",
+    "gt_scale",
     "render_ink",
     "score_raster",
     "score_topology",
@@ -33,6 +35,8 @@ class RasterParams:
 
     stroke_width_permille: float
     min_stroke_width_px: float
+    renderer: str
+    long_edge: int | None
     supersample: int
     ink_threshold: float
     f1_permille: tuple[float, ...]
@@ -42,35 +46,57 @@ class RasterParams:
     def __post_init__(self) -> None:
         if self.fidelity_reference not in ("input", "skeleton"):
             raise ValueError(f"raster.fidelity_reference must be input or skeleton, not {self.fidelity_reference!r}")
+        if self.renderer not in ("cairo", "supersample"):
+            raise ValueError(f"raster.renderer must be cairo or supersample, not {self.renderer!r}")
+        if self.long_edge is not None and int(self.long_edge) < 1:
+            raise ValueError(f"raster.long_edge must be a positive number of pixels or null, not {self.long_edge!r}")
 
 
-def render_ink(curves: Sequence[np.ndarray], shape: tuple[int, int], params: RasterParams) -> np.ndarray:
+def render_ink(curves: Sequence[np.ndarray], shape: tuple[int, int], params: RasterParams,
+               scale: float = 1.0) -> np.ndarray:
     """Ink mask of curves normalised as the benchmark does (uniform thin stroke, 8-bit, threshold).
 
     Parameters
     ----------
     curves : sequence of numpy.ndarray
-        Polylines (n, 2) in (x, y) pixel units.
+        Polylines (n, 2) in (x, y) pixel units of the image.
     shape : (H, W)
+        The image's size.
     params : RasterParams
+    scale : float
+        Render at this multiple of the image's size (see :func:`gt_scale`), as the benchmark renders
+        its 1000-px variant; the stroke width follows the rendered long edge.
 
     Returns
     -------
     numpy.ndarray
-        bool (H, W).
+        bool (round(H·scale), round(W·scale)).
     """
-    width = benchmark_stroke_width(shape, params.stroke_width_permille, params.min_stroke_width_px)
-    grey = rasterise_polylines(curves, shape, width, params.supersample)
+    out = (int(round(shape[0] * scale)), int(round(shape[1] * scale)))
+    curves = [np.asarray(c, np.float64).reshape(-1, 2) * scale for c in curves]
+    width = benchmark_stroke_width(out, params.stroke_width_permille, params.min_stroke_width_px)
+    if params.renderer == "cairo":
+        grey = rasterise_polylines_cairo(curves, out, width)
+    else:
+        grey = rasterise_polylines(curves, out, width, params.supersample)
     return binarise(np.round(grey * 255.0), params.ink_threshold)
 
 
-def score_raster(test_ink: np.ndarray, ref_ink: np.ndarray, params: RasterParams, prefix: str = "") -> dict:
+def gt_scale(shape: tuple[int, int], params: RasterParams) -> float:
+    """Scale at which output and ground truth are rendered for the comparison: ``long_edge`` / the
+    image's long edge (1 when ``long_edge`` is null)."""
+    return 1.0 if params.long_edge is None else params.long_edge / float(max(shape))
+
+
+def score_raster(test_ink: np.ndarray, ref_ink: np.ndarray, params: RasterParams, prefix: str = "",
+                 scale: float = 1.0) -> dict:
     """Chamfer, Hausdorff and F1 (metrics.md §2) with keys prefixed by ``prefix``.
 
     Only the headline numbers are kept (``chamfer``, ``hausdorff``, ``f1_<d>``), not the per-tolerance
-    precision and recall, to keep per-case rows readable.
+    precision and recall, to keep per-case rows readable.  ``scale`` is the one the masks were
+    rendered at: the pixel tolerances (``f1_<d>px``) stay in pixels of the image.
     """
-    m = raster_metrics(test_ink, ref_ink, params.f1_permille, params.f1_pixels)
+    m = raster_metrics(test_ink, ref_ink, params.f1_permille, params.f1_pixels, pixel_scale=scale)
     keep = {k: v for k, v in m.items() if k in ("chamfer", "hausdorff", "blank") or k.startswith("f1_")}
     return {prefix + k: v for k, v in keep.items()}
 

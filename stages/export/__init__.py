@@ -93,6 +93,7 @@ class JoinConfig:
     tangent_px: float
     margin_deg: float
     same_branch_deg: float
+    max_ends: int
 
 
 @dataclass
@@ -128,6 +129,7 @@ class ExportConfig:
     precision: int
     bezier: bool
     bezier_tolerance: float
+    max_curves: int
     min_length_px: float
     collapse: CollapseConfig
     join: JoinConfig
@@ -242,16 +244,28 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                        "end_types": [int(t) for t in paths[k].get("end_types", [0, 0])],
                        "end_keypoints": [int(t) for t in paths[k].get("end_keypoints", [-1, -1])],
                        "width": float(np.mean(w)) if len(w) else None})
-    if params.collapse.enabled:
+    notes = []
+    tidy = len(curves) <= params.max_curves
+    if not tidy:
+        # A guard, not a choice: the edits below are near-linear, but a drawing with more curves than
+        # this is not a line drawing we can tidy in bounded time; its curves are written as selected.
+        notes.append(f"{len(curves)} curves, more than export.max_curves ({params.max_curves}): written as "
+                     "selected, without link contraction, joins, spurs or overshoot extension")
+    if tidy and params.collapse.enabled:
         curves = collapse_short_links(curves, params.collapse.max_px, params.collapse.max_widths)
-    if params.join.enabled:
+    if tidy and params.join.enabled:
+        crowded: set = set()
         curves = join_continuations(curves, params.join.max_turn_deg, params.join.tangent_px,
-                                    params.join.margin_deg, params.join.same_branch_deg)
-    if params.spurs.enabled:
+                                    params.join.margin_deg, params.join.same_branch_deg, params.join.max_ends,
+                                    crowded)
+        if crowded:
+            notes.append(f"{len(crowded)} joints where more than export.join.max_ends ({params.join.max_ends}) "
+                         "curve ends meet: no curves joined there")
+    if tidy and params.spurs.enabled:
         curves = attach_spurs(curves, params.spurs.max_px, params.spurs.max_widths, params.spurs.max_turn_deg,
                               params.join.tangent_px, params.spurs.near_px, params.spurs.by_drawn_valence)
     mask = prep.arrays.get("mask")
-    if params.overshoot.enabled and mask is not None:
+    if tidy and params.overshoot.enabled and mask is not None:
         curves = extend_overshoots(curves, np.asarray(mask, bool), params.join.tangent_px, params.overshoot.min_px,
                                    params.overshoot.min_widths, params.overshoot.max_px,
                                    params.overshoot.max_widths, params.overshoot.clearance)
@@ -267,4 +281,4 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     data = {"svg": svg_document(width, height, curves, ds, params), "curves": curves}
     if params.bezier:
         data["bezier_svg"] = svg_document(width, height, curves, bds, params)
-    return Artifact(data=data)
+    return Artifact(data=data, notes=notes)

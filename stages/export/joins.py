@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.export.end_index import _SAME_POINT_PX, _EndIndex, _end_state, _first_in_order, _PointGrid
 from stages.geometry import arc_length, point_at_arc, polyline_length, turn_deg, unit
 
 JOINABLE_TYPES = (0, 3)      # synthetic ends and junctions; never endpoints (1) or sharp corners (5)
@@ -27,7 +28,8 @@ def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarr
 
 
 def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: float,
-                       margin_deg: float = 0.0, same_branch_deg: float = 0.0) -> list[dict]:
+                       margin_deg: float = 0.0, same_branch_deg: float = 0.0, max_ends: int | None = None,
+                       crowded: set | None = None) -> list[dict]:
     """Join curves that continue each other through a junction keypoint or a synthetic end.
 
     Parameters
@@ -44,6 +46,11 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
     same_branch_deg : float
         Other ends leaving within this angle of one of the two run along the same branch (overlapping
         curves) and do not count as other branches.
+    max_ends : int, optional
+        Guard: no join at a joint where more curve ends meet (the pair test costs the cube of their
+        number; a crossing has four ends, a blob of ink dozens).  None = no limit.
+    crowded : set, optional
+        Filled with the joints skipped by ``max_ends``.
 
     Returns
     -------
@@ -115,6 +122,10 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
             groups.pop(kk, None)
             return
         ends.sort()
+        if max_ends is not None and len(ends) > max_ends:
+            if crowded is not None:
+                crowded.add(kk)
+            return
         best = group_best(ends)
         if best is not None:
             # Ties go to the group whose first end comes first, as in a scan of the curve list.
@@ -173,10 +184,15 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
     ``max(max_px, max_widths · width)`` whose ends both meet other curve ends (same keypoint, or
     synthetic ends at the same point; never two ends of one curve, which would close it), between
     curves that are all longer than that (not inside a cluster of tiny curves, such as a filled
-    eye, which contracting one by one would shrink to a point), is removed, and every curve end that met either of its ends is moved to the link's midpoint (so no
-    end moves by more than half the link) and takes the type and keypoint of the link's end that
-    more curves met (ties: a corner, then a junction).  Free-ended short curves (tips, spurs) are
-    left to :func:`attach_spurs`.
+    eye, which contracting one by one would shrink to a point), is removed, and every curve end that
+    met either of its ends is moved to the link's midpoint (so no end moves by more than half the
+    link) and takes the type and keypoint of the link's end that more curves met (ties: a corner,
+    then a junction).  Free-ended short curves (tips, spurs) are left to :func:`attach_spurs`.
+
+    Links are contracted one at a time, always the first one in curve order, as a rescan of the list
+    after every contraction would find them; but only the curves near a contraction (at the moved
+    ends, and at the far ends of the curves whose length changed) are examined again, so the cost is
+    near-linear in the number of curves (a rescan was quadratic and took minutes on dense scribbles).
 
     Parameters
     ----------
@@ -190,55 +206,57 @@ def collapse_short_links(curves: list[dict], max_px: float, max_widths: float) -
     list of dict
         The remaining curves (same dict layout).
     """
-    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+    import heapq
 
-    def same(c: dict, f: int, o: dict, g: int) -> bool:
-        """Whether end f of c and end g of o are one meeting (one keypoint, or one synthetic point)."""
-        k, t = c["end_keypoints"][f], c["end_types"][f]
-        if k >= 0:
-            return o["end_keypoints"][g] == k
-        return t == 0 and o["end_types"][g] == 0 and o["end_keypoints"][g] < 0 and \
-            np.hypot(*(c["points"][0 if f == 0 else -1] - o["points"][0 if g == 0 else -1])) <= _SAME_POINT_PX
-
+    alive = {n: dict(c, points=np.asarray(c["points"], np.float64)) for n, c in enumerate(curves)}
+    length = {n: polyline_length(c["points"]) for n, c in alive.items()}
+    ends = _EndIndex(alive)
     # The meeting keeps the keypoint that more curves met; on a tie (one curve at each end: two ends
     # meet, a corner) a corner keypoint wins, so the ends are not joined or extended there.
     rank = {5: 3, 3: 2, 1: 1, 0: 0}
-    while True:
-        found = None
-        lengths = [polyline_length(c["points"]) for c in curves]
-        for i, c in enumerate(curves):
-            longest = max(max_px, max_widths * float(c.get("width") or 0.0))
-            if lengths[i] > longest:
-                continue
-            met = [[(j, g) for j, o in enumerate(curves) if j != i for g in (0, 1) if same(c, f, o, g)]
-                   for f in (0, 1)]
-            if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}) \
-                    and all(lengths[j] > longest for j, _ in met[0] + met[1]):
-                found = (i, met)
-                break
-        if found is None:
-            return curves
+
+    def links_to(i: int):
+        """The ends met at both ends of curve i when it is a link to collapse, else None."""
+        c = alive[i]
+        longest = max(max_px, max_widths * float(c.get("width") or 0.0))
+        if length[i] > longest:
+            return None
+        met = [[x for x in ends.meeting(_end_state(c, f)) if x[0] != i] for f in (0, 1)]
+        if met[0] and met[1] and not ({j for j, _ in met[0]} & {j for j, _ in met[1]}) \
+                and all(length[j] > longest for j, _ in met[0] + met[1]):
+            return met
+        return None
+
+    heap = list(alive)           # candidates, by curve order
+    while (found := _first_in_order(heap, alive, links_to)) is not None:
         i, met = found
-        link = curves[i]
+        link = alive.pop(i)
+        ends.remove(i, link)
         mid = 0.5 * (link["points"][0] + link["points"][-1])
         f = max((0, 1), key=lambda e: (len(met[e]), rank.get(link["end_types"][e], 0), -e))
         t, k = link["end_types"][f], link["end_keypoints"][f]
+        states = []              # where the meetings changed: the moved ends before and after, far ends
         for j, g in met[0] + met[1]:
-            o = curves[j]
+            o = alive[j]
+            states.append(_end_state(o, g))
+            ends.remove(j, o)
             pts = o["points"].copy()
             pts[0 if g == 0 else -1] = mid
             types, kps = list(o["end_types"]), list(o["end_keypoints"])
             types[g], kps[g] = t, k
-            curves[j] = dict(o, points=pts, end_types=types, end_keypoints=kps)
-        curves = [c for q, c in enumerate(curves) if q != i]
+            alive[j] = dict(o, points=pts, end_types=types, end_keypoints=kps)
+            length[j] = polyline_length(pts)
+            ends.add(j, alive[j])
+            states += [_end_state(alive[j], g), _end_state(alive[j], 1 - g)]
+        touched = {j for j, _ in met[0] + met[1]} | {j for s in states for j, _ in ends.meeting(s)}
+        for j in touched:
+            heapq.heappush(heap, j)
+    return [alive[n] for n in sorted(alive)]
 
 
 # ---------------------------------------------------------------------------------------------
 # Short spurs at junctions and unlabelled overshoots
 # ---------------------------------------------------------------------------------------------
-
-_SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology puts shared ends on one vertex)
-
 
 def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_turn_deg: float,
                  tangent_px: float, near_px: float, by_valence: bool = False) -> list[dict]:
@@ -255,6 +273,11 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
     at corner and junction keypoints count by their drawn valence (curve ends at the keypoint plus
     two per curve passing within ``near_px``): a corner with three or more is a junction, a corner
     or junction keypoint with only this end is a free end.
+
+    Spurs are attached one at a time, always the first one in curve order, as a rescan of the list
+    after every edit would find them; but ends and interior vertices are kept in grids, and only the
+    curves near an edit (ends near the vertices it moved, ends at the keypoints it touched) are
+    examined again, so the cost is near-linear in the number of curves, not cubic.
 
     Parameters
     ----------
@@ -276,82 +299,111 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
     -------
     list of dict
     """
-    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
-    done: set = set()
+    import heapq
 
-    def meets(c: dict, f: int, t: int, k: int, p: np.ndarray) -> bool:
-        """Whether end f of curve c is at the junction (keypoint k, or the synthetic point p)."""
+    alive = {n: dict(c, points=np.asarray(c["points"], np.float64)) for n, c in enumerate(curves)}
+    counter = len(alive)           # curves by list order: a new curve goes last, as it was appended
+    done: set = set()
+    ends = _EndIndex(alive)
+    # Interior vertices (a curve passing by) and every end (whose spur test an edit nearby may change).
+    reach = max(near_px, _SAME_POINT_PX)
+    inner, all_ends = _PointGrid(reach), _PointGrid(reach)
+
+    def index(n: int) -> None:
+        c = alive[n]
+        ends.add(n, c)
+        inner.add(n, c["points"][1:-1])
+        all_ends.add(n, c["points"][[0, -1]])
+
+    def unindex(n: int) -> None:
+        ends.remove(n, alive[n])
+        inner.remove(n)
+        all_ends.remove(n)
+
+    for n in alive:
+        inner.add(n, alive[n]["points"][1:-1])
+        all_ends.add(n, alive[n]["points"][[0, -1]])
+
+    def meets(t: int, k: int, p: np.ndarray) -> list:
+        """Ends at the junction (keypoint k of type t, or the synthetic point p)."""
         if t in (3, 5):
-            return c["end_types"][f] == t and c["end_keypoints"][f] == k
-        return c["end_types"][f] == 0 and np.hypot(*(c["points"][0 if f == 0 else -1] - p)) <= _SAME_POINT_PX
+            return [o for o in ends.by_keypoint.get(k, ()) if ends.state[o][0] == t]
+        return ends.synthetic_near(p)
+
+    def passing(p: np.ndarray) -> dict:
+        """Curve -> its interior vertices (indices into points) within ``near_px`` of p."""
+        out = {}
+        for n, idx in inner.near(p, near_px).items():
+            pts = alive[n]["points"][np.asarray(idx) + 1]
+            close = np.hypot(*(pts - p).T) <= near_px
+            if close.any():
+                out[n] = (np.asarray(idx)[close] + 1, np.hypot(*(pts - p).T)[close])
+        return out
 
     def shared(i: int, e: int) -> bool:
-        c = curves[i]
-        p = c["points"][0 if e == 0 else -1]
-        return any(meets(o, f, 0, -1, p) for j, o in enumerate(curves) for f in (0, 1) if (j, f) != (i, e))
+        return any(o != (i, e) for o in ends.synthetic_near(_end_state(alive[i], e)[2]))
 
     def drawn_valence(i: int, e: int) -> int:
         """Valence drawn at a keypoint end: curve ends at its keypoint, plus 2 per curve passing by."""
-        c = curves[i]
-        k, p = c["end_keypoints"][e], c["points"][0 if e == 0 else -1]
-        at_k = [any(o["end_keypoints"][f] == k for f in (0, 1)) for o in curves]
-        v = sum(o["end_keypoints"][f] == k for o in curves for f in (0, 1))
-        for j, o in enumerate(curves):
-            if not at_k[j] and len(o["points"]) > 2:
-                v += 2 * bool(np.min(np.hypot(*(o["points"][1:-1] - p).T)) <= near_px)
+        _, k, p = _end_state(alive[i], e)
+        v = len(ends.by_keypoint.get(k, ()))
+        for n in passing(p):
+            o = alive[n]
+            if k not in (o["end_keypoints"][0], o["end_keypoints"][1]) and len(o["points"]) > 2:
+                v += 2
         return v
 
-    while True:
-        found = None
-        for i, c in enumerate(curves):
-            w = c.get("width") or 0.0
-            if c["id"] in done or polyline_length(c["points"]) > max(spur_px, spur_widths * w):
-                continue
-            for e in (0, 1):
-                t_j, t_f = c["end_types"][e], c["end_types"][1 - e]
-                at_junction = ((t_j == 3 and c["end_keypoints"][e] >= 0) or t_j == 0
-                               or (by_valence and t_j == 5 and drawn_valence(i, e) >= 3))
-                free = (t_f == 1 or (t_f == 0 and not shared(i, 1 - e))
-                        or (by_valence and t_f in (3, 5) and c["end_keypoints"][1 - e] >= 0
-                            and drawn_valence(i, 1 - e) == 1))
-                if at_junction and free:
-                    found = (i, e)
-                    break
-            if found:
-                break
-        if found is None:
-            return curves
+    def spur_end(i: int):
+        """The junction end of curve i when it is a spur to attach, else None."""
+        c = alive[i]
+        w = c.get("width") or 0.0
+        if c["id"] in done or polyline_length(c["points"]) > max(spur_px, spur_widths * w):
+            return None
+        for e in (0, 1):
+            t_j, t_f = c["end_types"][e], c["end_types"][1 - e]
+            at_junction = ((t_j == 3 and c["end_keypoints"][e] >= 0) or t_j == 0
+                           or (by_valence and t_j == 5 and drawn_valence(i, e) >= 3))
+            free = (t_f == 1 or (t_f == 0 and not shared(i, 1 - e))
+                    or (by_valence and t_f in (3, 5) and c["end_keypoints"][1 - e] >= 0
+                        and drawn_valence(i, 1 - e) == 1))
+            if at_junction and free:
+                return e
+        return None
+
+    heap = list(alive)             # candidates, by list order
+    while (found := _first_in_order(heap, alive, spur_end)) is not None:
         i, e = found
-        spur = curves[i]
+        spur = alive[i]
         done.add(spur["id"])
-        k = spur["end_keypoints"][e]
-        t_j = spur["end_types"][e]
-        p = spur["points"][0 if e == 0 else -1]
+        t_j, k, p = _end_state(spur, e)
         d_s = end_direction(spur["points"], e == 0, tangent_px)
         best = None                                     # (turn, j, kind, index)
-        for j, c in enumerate(curves):
+        at_end: dict = {}
+        for j, f in meets(t_j, k, p):
+            at_end.setdefault(j, []).append(f)
+        near = passing(p)
+        for j in sorted(set(at_end) | set(near)):       # in list order: the first of equal turns wins
             if j == i:
                 continue
-            for f in (0, 1):
-                if meets(c, f, t_j, k, p):
-                    t = turn_deg(d_s, end_direction(c["points"], f == 0, tangent_px))
-                    if best is None or t < best[0]:
-                        best = (t, j, "end", f)
+            c = alive[j]
+            for f in sorted(at_end.get(j, ())):
+                t = turn_deg(d_s, end_direction(c["points"], f == 0, tangent_px))
+                if best is None or t < best[0]:
+                    best = (t, j, "end", f)
             pts = c["points"]
-            if len(pts) > 2:
-                dist = np.hypot(*(pts[1:-1] - p).T)
-                m = int(np.argmin(dist)) + 1
-                if dist[m - 1] <= near_px:
-                    for f, half in ((1, pts[:m + 1]), (0, pts[m:])):
-                        if polyline_length(half) <= 1e-9:
-                            continue
-                        t = turn_deg(d_s, end_direction(half, f == 0, tangent_px))
-                        if best is None or t < best[0]:
-                            best = (t, j, "split", (m, f))
+            if j in near and len(pts) > 2:
+                idx, dist = near[j]
+                m = int(idx[np.lexsort((idx, dist))[0]])  # the nearest interior vertex (first of ties)
+                for f, half in ((1, pts[:m + 1]), (0, pts[m:])):
+                    if polyline_length(half) <= 1e-9:
+                        continue
+                    t = turn_deg(d_s, end_direction(half, f == 0, tangent_px))
+                    if best is None or t < best[0]:
+                        best = (t, j, "split", (m, f))
         if best is None or best[0] > max_turn_deg:
             continue
         _, j, kind, where = best
-        other = curves[j]
+        other = alive[j]
         sp = spur["points"] if e == 1 else spur["points"][::-1]        # runs into the junction
         s_type, s_kp = spur["end_types"][1 - e], spur["end_keypoints"][1 - e]
         rest = []
@@ -375,7 +427,24 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
         joined = {**spur, "points": np.concatenate([sp, op[1:]]), "end_types": [s_type, o_type],
                   "end_keypoints": [s_kp, o_kp], "parts": list(spur["parts"]) + list(other["parts"]),
                   "width": _mean_width(spur, other)}
-        curves = [c for q, c in enumerate(curves) if q not in (i, j)] + rest + [joined]
+        # What the edit can change for other curves: ends near the vertices it moved between curves
+        # (shared synthetic ends, curves passing by) and the counts at the keypoints it touched.
+        moved = np.vstack([spur["points"], other["points"], p[None]])
+        keypoints = {spur["end_keypoints"][0], spur["end_keypoints"][1], other["end_keypoints"][0],
+                     other["end_keypoints"][1], k} - {-1}   # not −1: junction and corner ends have keypoints
+        for n in (i, j):
+            unindex(n)
+            del alive[n]
+        for c in rest + [joined]:
+            alive[counter] = c
+            index(counter)
+            heapq.heappush(heap, counter)
+            counter += 1
+        touched = set(all_ends.near(moved, reach))
+        touched |= {n for kp in keypoints for n, _ in ends.by_keypoint.get(kp, ())}
+        for n in touched:
+            heapq.heappush(heap, n)
+    return [alive[n] for n in sorted(alive)]
 
 
 def _distance_to_polyline(p: np.ndarray, pts: np.ndarray) -> float:
@@ -435,14 +504,20 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
     -------
     list of dict
     """
+    from scipy.spatial import cKDTree
+
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
     h, w_img = mask.shape
-    # Every curve's segments, stacked once, for the clearance test.
+    # Every curve's segments, stacked once, for the clearance test; a tree of their midpoints finds
+    # the few near a tip (a segment within r of it has its midpoint within r + half the longest
+    # segment), where testing every segment of the drawing for every end was quadratic.
     seg_a = [c["points"][:-1] if len(c["points"]) > 1 else c["points"] for c in curves]
     seg_b = [c["points"][1:] if len(c["points"]) > 1 else c["points"] for c in curves]
     owner = np.repeat(np.arange(len(curves)), [len(a) for a in seg_a])
     seg_a = np.concatenate(seg_a) if curves else np.zeros((0, 2))
     seg_b = np.concatenate(seg_b) if curves else np.zeros((0, 2))
+    mids = cKDTree(0.5 * (seg_a + seg_b)) if len(seg_a) else None
+    half = 0.5 * float(np.hypot(*(seg_b - seg_a).T).max()) if len(seg_a) else 0.0
     adds = []
     for i, c in enumerate(curves):
         w = float(c.get("width") or 0.0)
@@ -469,7 +544,8 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             pts = c["points"] if e == 0 else c["points"][::-1]
             arc = arc_length(pts)
             own = pts[arc > 2.0 * ln]
-            others = owner != i
+            cand = np.asarray(mids.query_ball_point(tip, clearance * ln + half), np.int64)
+            others = cand[owner[cand] != i]
             near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
                        _distance_to_polyline(tip, own) if len(own) else np.inf)
             if near < clearance * ln:

@@ -589,4 +589,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         "roots": out["roots"].astype(np.complex64), "singular": out["singular"],
         "c0_ext": out["c0_ext"].astype(np.complex64), "c2_ext": out["c2_ext"].astype(np.complex64),
     }
-    return Artifact(arrays=arrays, data=out["stats"])
+    notes = []
+    capped = sum(not c for c in out["stats"]["cg_converged"])
+    if capped:
+        notes.append(f"{capped} of {len(out['stats']['cg_converged'])} solves stopped at field.cg_max_iterations "
+                     f"({conf.cg_max_iterations}) before field.cg_rtol: the field may be less smooth")
+    return Artifact(arrays=arrays, data=out["stats"], notes=notes)

@@ -94,7 +94,7 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -104,6 +104,7 @@ from stages.config import from_section
 from stages.errors import InputError
 from stages.flow.kernel import _flow_kernel, _pack_field, bilinear_with_gradient
 from stages.flow.paths import prepare_paths
+from stages.geometry import polyline_length
 
 STAGE_VERSION = "2"
 
@@ -135,6 +136,7 @@ class FlowConfig:
     lam: float
     eps: float
     spacing: float
+    max_vertices: int
     resample_factor: float
     barrier: BarrierConfig
     step_scale: StepScaleConfig
@@ -318,6 +320,15 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         xys.append(xy)
         widths.append(wd)
         interest.append(dd)
+    notes = []
+    # Guard: the flow costs iterations × vertices; past max_vertices (the paths resampled at
+    # spacing) the iterations shrink so that their product stays within iterations × max_vertices.
+    n_vert = sum(polyline_length(xy) / params.spacing + 1.0 for xy in xys)
+    if n_vert > params.max_vertices and params.iterations > 1:
+        its = max(1, int(params.iterations * params.max_vertices / n_vert))
+        notes.append(f"about {n_vert:.0f} path vertices, more than flow.max_vertices ({params.max_vertices}): "
+                     f"{its} iterations instead of {params.iterations}")
+        params = replace(params, iterations=its)
     res = polyvector_flow(c0, c2, xys, widths, interest, params)
     flat, off = pack_ragged(res.curves, dtype=np.float64)
     return Artifact(
@@ -327,4 +338,4 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
               "resamples": int(res.resamples.sum()),
               "rejected_steps": int(res.rejected.sum()),
               "failed": [int(p["id"]) for p, f in zip(paths, res.failed) if f],
-              "n_vertices": int(len(flat))})
+              "n_vertices": int(len(flat))}, notes=notes)

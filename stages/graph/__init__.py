@@ -101,6 +101,7 @@ class CleanupConfig:
     min_component_area: float
     max_loop_background: int
     max_cycle_vertices: int
+    max_loop_searches: int
     spur_max_length: float
     spur_min_covered: float
     tip_hook_angle: float
@@ -175,6 +176,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     """
     tc, sc, cc = conf.trace, conf.sections, conf.cleanup
     timings = {}
+    notes: list[str] = []          # guards that bound (said by the engine; see Artifact.notes)
     t0 = time.perf_counter()
     lines = trace_streamlines(c0, c2, band, singular, roots[..., 0], step=tc.step,
                               max_half_samples=tc.max_half_samples, merge_distance=tc.merge_distance,
@@ -215,9 +217,12 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     # 3. insignificant components (before the loop search, the costly part)
     edges = _drop_small(xy, width, edges, cc.min_component_area)
     # 4. thickness loops
-    edges, n_loops = cleanup.contract_thickness_loops(xy, edges, band, cc.max_loop_background,
-                                                      cc.max_cycle_vertices)
+    edges, n_loops, cut = cleanup.contract_thickness_loops(xy, edges, band, cc.max_loop_background,
+                                                           cc.max_cycle_vertices, cc.max_loop_searches)
     stats["loops_contracted"] = n_loops
+    if cut:
+        notes.append(f"thickness-loop search stopped after graph.cleanup.max_loop_searches "
+                     f"({cc.max_loop_searches}) cycle searches: {n_loops} loops contracted, others kept")
     # 5. spurs inside the stroke
     edges, n_spurs = ends.prune_covered_spurs(xy, width, counts, edges, cc.spur_max_length,
                                                  cc.spur_min_covered)
@@ -291,7 +296,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     stats.update({"vertices": int(len(final)), "edges": int(len(e_fin)),
                   "degree_histogram": np.bincount(deg).tolist() if len(deg) else [],
                   "singular_vertices": int((arrays["vertex_flags"] & 1).sum())})
-    data = {"counts": stats, "timings": {k: round(v, 4) for k, v in timings.items()}}
+    data = {"counts": stats, "timings": {k: round(v, 4) for k, v in timings.items()}, "notes": notes}
     return arrays, data, lines
 
 
@@ -334,4 +339,4 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     t = time.perf_counter()
     arrays, data, _ = build_graph(grey, band, c0, c2, roots, singular, conf)
     data["timings"]["total_s"] = round(time.perf_counter() - t, 4)
-    return Artifact(arrays=arrays, data=data)
+    return Artifact(arrays=arrays, data=data, notes=data.pop("notes"))

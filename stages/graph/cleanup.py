@@ -213,7 +213,7 @@ def _background_inside(poly_xy: np.ndarray, band: np.ndarray) -> int:
     return int((~band[rr, cc]).sum())
 
 
-def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices):
+def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices, max_searches=None):
     """Contract cycles enclosing at most ``max_background`` background pixels (module docstring, step 4).
 
     Parameters
@@ -229,6 +229,10 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
     max_cycle_vertices : int
         Cycles are searched by BFS up to this many visited vertices (bounds the cost on huge rings,
         which are real holes anyway).
+    max_searches : int, optional
+        Guard on the number of cycle searches in all (each one a BFS of at most
+        ``max_cycle_vertices``): a graph of many tiny loops (a scribbled blob) is left with the loops
+        not reached.  None = no limit.
 
     Returns
     -------
@@ -236,6 +240,8 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
         The remaining edges.
     contracted : int
         Number of loops contracted.
+    cut : bool
+        Whether ``max_searches`` stopped the contraction with edges left to search.
     """
     n = len(xy)
     adj = adjacency(n, edges)
@@ -263,6 +269,10 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
         for a, b in extra:
             if b not in adj[a]:
                 continue
+            if max_searches is not None:
+                if max_searches <= 0:
+                    return edges_from_adjacency(adj), contracted, True
+                max_searches -= 1
             path = _shortest_cycle_path(adj, a, b, max_cycle_vertices)
             if path is None:
                 continue
@@ -277,7 +287,7 @@ def contract_thickness_loops(xy, edges, band, max_background, max_cycle_vertices
             changed = True
         if not changed:
             break
-    return edges_from_adjacency(adj), contracted
+    return edges_from_adjacency(adj), contracted, False
 
 
 def _contract(adj, xy, cycle):

@@ -113,6 +113,10 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         name = f"{path.name}@{_file_hash(path)}"
     model.eval()
+    # Channels-last convolutions run the full network about 30 % faster on one CPU thread (same
+    # heatmaps to 1e-5; tests/benchmarks/bench_keypoints.py). Inference only: with bf16 training it
+    # gives NaN gradients (train.channels_last).
+    model.to(memory_format=torch.channels_last)
     _MODELS[key] = (model, name)
     return model, name
 
@@ -153,6 +157,7 @@ class KeypointsConfig:
     contrast_floor: float
     tile_size: int
     tile_overlap: int
+    max_keypoints: int
     torch_threads: int
 
     def __post_init__(self) -> None:
@@ -202,11 +207,20 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         heatmaps[0] = h1 / (1 + len(ensemble))
     heatmaps, points, types, scores = keypoints_from_heatmaps(
         cfg, heatmaps, np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None)
+    notes = []
+    cap = c.max_keypoints
+    if len(points) > cap:
+        # A guard: the topology's search grows with the keypoints (paths between pairs of key
+        # vertices), so a noise field of peaks keeps only its strongest ones, in their order.
+        keep = np.sort(np.argsort(-scores, kind="stable")[:cap])
+        notes.append(f"{len(points)} keypoints, more than keypoints.max_keypoints ({cap}): kept the {cap} "
+                     "strongest")
+        points, types, scores = points[keep], types[keep], scores[keep]
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
-                    data={"points": data_points, "weights": name, "count": len(data_points)})
+                    data={"points": data_points, "weights": name, "count": len(data_points)}, notes=notes)
 
 
 def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None

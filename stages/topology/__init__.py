@@ -154,7 +154,13 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                            _array(graph, "edges", "graph"), points, types,
                            graph.arrays.get("vertex_flags"))
     cov, cov_off = pack_ragged(out["coverage"], np.int32)
-    return Artifact(
+    notes = []
+    if out["counts"].get("enumeration_budget_hit"):
+        # The guard on the path search (best-first, so a cut drops the longest paths); the chains no
+        # path reached get synthetic key vertices and are still covered.
+        notes.append(f"path search cut at topology.max_enumeration_steps ({conf.max_enumeration_steps}) from "
+                     f"{out['counts']['enumeration_budget_hit']} key vertices: the longest candidate paths are missing")
+    return Artifact(notes=notes,
         arrays={"coverage": cov.astype(np.int32), "coverage_offsets": cov_off,
                 "steiner_segments": np.asarray(out["steiner_segments"], np.float64)},
         data={"paths": out["paths"], "key_vertices": out["key_vertices"],

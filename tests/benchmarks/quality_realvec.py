@@ -2,7 +2,7 @@
 
 Usage::
 
-    python tests/benchmarks/quality_realvec.py [--keypoints gt|detector] [--cases PATTERN ...]
+    python tests/benchmarks/quality_realvec.py [--keypoints gt|detector] [--data DIR] [--cases PATTERN ...]
                                                [--limit N] [--procs 2] [--worst 12] [--json OUT]
                                                [--render DIR] [--no-cache]
 
@@ -461,7 +461,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the per-case rows here")
     ap.add_argument("--render", type=Path, default=None, help="render the worst cases (by f1_2) into this folder")
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="a folder of realvec-style cases instead of realvec_dev (e.g. the validation split "
+                         "written by `python -m pipeline.validation_cases`)")
     args = ap.parse_args(argv)
+    global DATA
+    if args.data is not None:
+        DATA = args.data
     if not DATA.is_dir():
         print(f"{DATA} not found (../shared is absent)", file=sys.stderr)
         return 2

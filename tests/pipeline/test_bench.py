@@ -185,6 +185,8 @@ def test_bench_cli(tmp_path, cli):
     assert "keypoints pooled over all points" in res.stderr
     page = (out / "report.html").read_text()
     assert "tee" in page and "plain/line" in page and (out / "img" / "tee.png").is_file()
+    assert "chamfer [‰ L]" in page and "f1_2 [0–1]" in page and "time_s [s]" in page      # units
+    assert summary["units"]["chamfer"] == "fraction of L" and summary["units"]["time_s"] == "s"
     assert (tmp_path / "artifacts" / "prep").is_dir()  # the polyvec store, shared with `polyvec`
 
     again = cli(f"bench.cases=[{tmp_path / 'nowhere'}]", f"bench.out={tmp_path / 'r2'}", cwd=tmp_path,
@@ -197,3 +199,20 @@ def test_case_without_json_is_fidelity_only(tmp_path):
     img.write_bytes(synthetic.line().png_bytes())
     c = load_case(img)
     assert isinstance(c, Case) and c.strokes is None and c.keypoints is None
+
+
+def test_every_column_has_a_unit_and_small_distances_show():
+    """Issue 18 item 18: a 0.1–0.4 px Chamfer printed 0.000; every column of the default tables and
+    of the report names its unit, and distances are shown in ‰ of the long edge with 3 decimals."""
+    from pipeline.bench_report import _fmt, _head, column_unit
+    from pipeline.registry import STAGES
+    from tests.benchmarks._common import stage_cfg
+
+    rep = stage_cfg("bench")["report"]
+    for col in rep["gt_columns"] + rep["fidelity_columns"] + [f"t_{s.name}" for s in STAGES] + \
+            ["kp_f1_1to1", "kp_class_acc", "kp_f1_1to1_junction", "width"]:
+        assert _head(col).endswith("]") and column_unit(col)
+    assert column_unit("chamfer") == column_unit("fid_hausdorff") == "‰ L"
+    assert column_unit("f1_2") == "0–1" and column_unit("t_flow") == "s" and column_unit("peak_rss_mb") == "MB"
+    assert column_unit("duplicated_px") == "px" and column_unit("dangling") == "count"
+    assert _fmt(0.2 / 1000, "chamfer") == "0.200" and _fmt(0.0004, "fid_chamfer") == "0.400"

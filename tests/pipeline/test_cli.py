@@ -98,6 +98,8 @@ def test_export_bezier_true_as_the_readme_spells_it(tmp_path, cli):
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     assert (tmp_path / "out" / "vee.svg").exists() and (tmp_path / "out" / "vee.bezier.svg").exists()
+    # the summary names every file written, the Bézier SVG too (issue 18 item 14)
+    assert "wrote out/vee.svg, out/vee.json, out/vee.bezier.svg" in proc.stderr.replace("\n", "")
 
 
 def test_help_describes_polyvec(tmp_path, cli):

@@ -93,3 +93,22 @@ def test_readme_detector_and_bench_commands_run(tmp_path):
         assert r.returncode in (0, 1), f"{cmd}\n{r.stderr[-2000:]}"  # 1: polyvec-bench with a failed case
         assert "Traceback" not in r.stderr, f"{cmd}\n{r.stderr[-2000:]}"
     assert np.any([p.name == "type_classifier.npz" for p in (tmp_path / "outputs").rglob("*")])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sweep", [False, True])
+def test_polyvec_train_names_its_weights_and_leaves_the_folder_clean(tmp_path, sweep):
+    """Issue 18 items 10 and 14: no ``outputs/<date>/<time>/.hydra/`` (nor a sweep's
+    ``multirun.yaml``) in the working folder, and one line that says where the weights went."""
+    _ndjson(tmp_path / "qd", ["thing0", "thing1"])
+    work, out = tmp_path / "cwd", tmp_path / "weights"
+    work.mkdir()
+    argv = _adapt(f"polyvec-train {'-m ' if sweep else ''}train.steps=1 train.out_dir={out}", tmp_path)
+    argv = [sys.executable, "-m", "pipeline.train"] + argv[1:]
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    r = subprocess.run(argv, cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert sorted(p.name for p in work.rglob("*")) == []                 # nothing left in the user's folder
+    said = [ln for ln in r.stdout.splitlines() if "weights written to" in ln]
+    assert len(said) == 1 and str((out / "keypoints.pt").resolve()) in said[0], r.stdout[-2000:]
+    assert (out / "keypoints.pt").is_file()

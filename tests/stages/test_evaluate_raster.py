@@ -134,9 +134,56 @@ def test_rendered_ground_truth_matches_a_synthetic_drawing():
     from stages.synthetic import example_drawing
 
     d = example_drawing()
-    params = RasterParams(1.0, 1.0, 4, INK_THRESHOLD, (2, 4), (1, 2), "input")
+    params = RasterParams(1.0, 1.0, "cairo", None, 4, INK_THRESHOLD, (2, 4), (1, 2), "input")
     ink = render_ink(d.strokes, d.grey.shape, params)
     drawn = binarise(np.round(d.grey * 255))
     m = raster_metrics(ink, drawn, f1_pixels=[2])
     assert m["precision_2px"] == 1.0  # the thin rendering lies inside the 3-px strokes
     assert m["recall_2px"] > 0.99  # and is within 2 px of every ink pixel of them
+
+
+def test_cairo_rendering_matches_an_svg_rendered_by_cairosvg(tmp_path):
+    """Issue 18 item 18: the bench rasterises as the benchmark does — a normalised SVG (0.001·L wide,
+    round caps and joins) rendered by cairo at long edge 1000 — not by an approximation: every 8-bit
+    grey level equals cairosvg's rendering of the same SVG, so the ink masks are identical."""
+    import io
+
+    import cairosvg
+    from PIL import Image
+
+    from stages.evaluate.raster import rasterise_polylines_cairo
+    from stages.evaluate.svg import parse_svg_polylines
+
+    rng = np.random.default_rng(3)
+    h, w = 750, 1000
+    strokes = [np.cumsum(rng.normal(0, 9, (40, 2)), 0) + rng.uniform(150, 600, 2) for _ in range(12)]
+    strokes.append(np.array([[500.25, 40.5], [500.25, 40.5]]))  # a dot (a lone M draws nothing in SVG)
+    paths = "".join(f'<path d="M {" L ".join(f"{x:.3f} {y:.3f}" for x, y in np.round(p, 3))}"/>' for p in strokes)
+    svg = tmp_path / "normalised.svg"
+    svg.write_text(f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}">'
+                   f'<rect width="{w}" height="{h}" fill="white"/><g fill="none" stroke="#000000" stroke-width="1" '
+                   f'stroke-linecap="round" stroke-linejoin="round">{paths}</g></svg>')
+    by_cairo = np.asarray(Image.open(io.BytesIO(cairosvg.svg2png(url=str(svg)))).convert("L"), np.float64)
+    ours = np.round(rasterise_polylines_cairo(parse_svg_polylines(svg.read_text()), (h, w), 1.0) * 255)
+    assert by_cairo.shape == ours.shape == (h, w)
+    assert np.array_equal(ours, by_cairo)
+    assert np.array_equal(binarise(ours), binarise(by_cairo)) and binarise(ours).sum() > 3000
+    # the supersampled approximation it replaces darkens pixels the benchmark leaves white
+    approx = binarise(np.round(rasterise_polylines(parse_svg_polylines(svg.read_text()), (h, w), 1.0) * 255))
+    assert (approx & ~binarise(by_cairo)).sum() > 0.01 * binarise(by_cairo).sum()
+
+
+def test_bench_scores_ground_truth_at_the_benchmark_long_edge():
+    """The ground-truth comparison renders at long edge 1000 (1-px strokes, τ = 2 px for F1@2) whatever
+    the image's size, and pixel tolerances stay in pixels of the image."""
+    from stages.evaluate.score import gt_scale, score_raster
+
+    params = RasterParams(1.0, 1.0, "cairo", 1000, 4, INK_THRESHOLD, (2,), (2,), "input")
+    line = np.array([[10.0, 20.0], [200.0, 60.0]])
+    shifted = line + [0.0, 1.5]                      # 1.5 px of the 256-px image = 5.9 px at 1000
+    scale = gt_scale((256, 128), params)
+    assert scale == 1000 / 256
+    a, b = render_ink([line], (256, 128), params, scale), render_ink([shifted], (256, 128), params, scale)
+    assert a.shape == (1000, 500)
+    m = score_raster(a, b, params, scale=scale)
+    assert m["f1_2"] < 0.2 and m["f1_2px"] == 1.0

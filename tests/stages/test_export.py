@@ -480,3 +480,67 @@ def test_joining_is_near_linear_in_the_number_of_curves(monkeypatch):
     out = export.join_continuations(curves, 35.0, 5.0, 10.0, 10.0)
     assert len(out) == 1 and sorted(out[0]["parts"]) == list(range(n))
     assert calls["n"] <= 6 * n, calls["n"]
+
+
+def _count_lengths(monkeypatch) -> dict:
+    calls = {"n": 0}
+    length = joins.polyline_length
+
+    def counting(points):
+        calls["n"] += 1
+        return length(points)
+
+    monkeypatch.setattr(joins, "polyline_length", counting)
+    return calls
+
+
+def test_collapsing_and_attaching_spurs_are_near_linear_in_the_number_of_curves(monkeypatch):
+    """Issue 18 item 4: N doubled corners (N links to contract) and N spurs at N crossings.  A rescan of
+    every curve after each edit measured curve lengths O(N²) times (minutes on dense scribbles); now
+    only the curves near an edit are examined again.  Results are those of the rescan: every link is
+    contracted, every spur attached, in curve order."""
+    n = 150
+    vees = []
+    for k in range(n):
+        a, b, link = _vee_with_a_doubled_corner()
+        shift = np.array([60.0 * k, 0.0])
+        kp = {0: 10 * k, 1: 10 * k + 1, 5: 10 * k + 5, 6: 10 * k + 6}
+        vees += [dict(c, id=3 * k + c["id"], parts=[3 * k + c["id"]], points=c["points"] + shift,
+                      end_keypoints=[kp[q] for q in c["end_keypoints"]]) for c in (a, b, link)]
+    calls = _count_lengths(monkeypatch)
+    out = export.collapse_short_links(vees, 3.0, 1.5)
+    assert len(out) == 2 * n and all(c["id"] % 3 != 0 for c in out)          # every link contracted
+    assert calls["n"] <= 6 * len(vees), calls["n"]
+
+    spurs = []
+    for k in range(n):
+        shift = np.array([50.0 * k, 0.0])
+        through = _piece(2 * k, _line((0, 0), (40, 40)) + shift, [1, 1], [4 * k, 4 * k + 1])
+        spur = _piece(2 * k + 1, _line((20, 20), (24.6, 28.9)) + shift, [3, 1], [4 * k + 2, 4 * k + 3])
+        spurs += [through, spur]
+    calls["n"] = 0
+    out = export.attach_spurs(spurs, 12.0, 4.0, 60.0, 5.0, 1.5)
+    assert len(out) == 2 * n and sum(len(c["parts"]) == 2 for c in out) == n  # every spur attached
+    assert calls["n"] <= 12 * len(spurs), calls["n"]
+
+
+def test_no_join_where_more_ends_meet_than_join_max_ends():
+    """Issue 18 item 4, the joins' guard: the pair test at a joint costs its number of ends cubed, so
+    past ``join.max_ends`` nothing is joined there and the joint is reported (run() says so)."""
+    c = np.array([32.0, 32.0])
+    # a straight bar through junction 9 (its halves continue each other), and four arms off to one side
+    arms = [_curve(c - [20, 0], c, [1, 3], [1, 9]), _curve(c, c + [20, 0], [3, 1], [9, 2])]
+    arms += [_curve(c, c + 20 * np.array([np.cos(a), np.sin(a)]), [3, 1], [9, 3 + k])
+             for k, a in enumerate(np.radians([50, 80, 110, 140]))]
+    assert len(export.join_continuations(arms, 35.0, 5.0, 10.0, 10.0)) == 5            # the bar is joined
+    crowded = set()
+    assert len(export.join_continuations(arms, 35.0, 5.0, 10.0, 10.0, 5, crowded)) == 6
+    assert crowded == {("k", 9)}
+    paths = [a["points"] for a in arms]
+    inputs = _inputs(paths, list(range(len(paths))))
+    for p, a in zip(inputs["topology"].data["paths"], arms):
+        p["end_types"], p["end_keypoints"] = a["end_types"], a["end_keypoints"]
+    art = export.run(_cfg(join={**CFG["join"], "max_ends": 5}), **inputs)
+    assert len(art.data["curves"]) == 6 and art.notes == [
+        "1 joints where more than export.join.max_ends (5) curve ends meet: no curves joined there"]
+    assert export.run(CFG, **inputs).notes == []

@@ -151,3 +151,32 @@ def test_pillow_decompression_limit_names_the_limit_that_applies(monkeypatch):
     with pytest.raises(InputError, match="Pillow's decompression-bomb limit of 1000 pixels") as info:
         prep.run(dict(CFG, max_pixels=10**9), data)
     assert "\n" not in str(info.value)
+
+
+def _grainy_pencil(grain: float) -> np.ndarray:
+    """A faint 3-px square outline (0.23 below the paper) on 200×200 paper with Gaussian grain."""
+    ink = np.zeros((200, 200))
+    ink[40:160, 40:160] = 1.0
+    ink[43:157, 43:157] = 0.0
+    rng = np.random.default_rng(3)
+    return np.clip(0.86 - 0.23 * ink + rng.normal(0, grain, ink.shape), 0, 1)
+
+
+def test_paper_grain_does_not_become_band():
+    clean = prep.run(CFG, _variants(_grainy_pencil(0.0).astype(np.float32))["png-grey"])["mask"]
+    out = prep.run(CFG, _variants(_grainy_pencil(0.05).astype(np.float32))["png-grey"])
+    # Without the grain rule (paper_grain_sigmas 0) half of this page was band.
+    assert out["mask"].mean() < 2 * clean.mean()
+    assert (out["mask"] & clean).sum() > 0.5 * clean.sum()     # the line is still there
+    assert out.data["paper_grain"] > 0.1 and out.data["band_threshold"] < CFG["threshold"]
+
+
+def test_clean_paper_keeps_the_configured_threshold(drawing):
+    out = prep.run(CFG, _variants(drawing.grey)["png-grey"])
+    assert out.data["paper_grain"] == 0.0 and out.data["band_threshold"] == CFG["threshold"]
+
+
+def test_grain_rule_off_is_the_plain_threshold():
+    cfg = {**CFG, "paper_grain_sigmas": 0}
+    out = prep.run(cfg, _variants(_grainy_pencil(0.05).astype(np.float32))["png-grey"])
+    assert out["mask"].mean() > 0.2        # the failure the rule exists for

@@ -45,6 +45,7 @@ def test_picks_the_cheaper_of_two_overlapping_candidates():
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["chosen"] == [11]
     assert art.data["objective"] == pytest.approx(42.0 + CFG["curve_cost"])
+    assert art.notes == []                                   # proven optimal: nothing to say
 
 
 def test_valence_of_a_corner_forces_a_second_path():
@@ -146,6 +147,16 @@ def test_solver_failures_fall_back_and_report(monkeypatch, reason):
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["status"] == f"fallback: {reason}"
     assert art.data["chosen"] == [11]
+    # the guard (CBC's time limit, or a failure) says so in one line (issue 18 item 4)
+    assert len(art.notes) == 1 and "not proven optimal" in art.notes[0] and "select.time_limit" in art.notes[0]
+
+
+def test_a_time_limited_selection_says_so(monkeypatch):
+    """CBC stopped by select.time_limit with an integer solution: used, and said to be unproven."""
+    monkeypatch.setattr(select, "solve_mip", lambda problem, params: (np.array([False, True]), "feasible", 72.0))
+    art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
+    assert art.data["status"] == "feasible" and art.data["chosen"] == [11]
+    assert art.notes == ["selection not proven optimal (feasible; CBC stops at select.time_limit = 20 s)"]
 
 
 def test_a_violating_solver_answer_is_not_trusted(monkeypatch):

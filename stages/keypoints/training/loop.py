@@ -102,6 +102,13 @@ def export_weights(model: KeypointNet, path: Path, record: dict) -> None:
     """Write the shippable checkpoint: fp16 weights, network config and a training record."""
     sd = {k: (v.half() if v.is_floating_point() else v) for k, v in model.state_dict().items()}
     _atomic_save({"network": model.cfg.to_dict(), "state_dict": sd, "record": record}, path)
+    say_weights(path)
+
+
+def say_weights(path: Path) -> None:
+    """One line naming the weights file just written (the user would otherwise have to search for it)."""
+    print(f"weights written to {Path(path).resolve()} (copy it to stages/keypoints/weights/ to ship it)",
+          flush=True)
 
 
 class _Log:

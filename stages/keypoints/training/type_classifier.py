@@ -16,7 +16,7 @@ from stages.config import from_section
 from stages.keypoints.training.data import _vector_files, vector_samples, vector_split
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
-from stages.keypoints.training.loop import _class_weights
+from stages.keypoints.training.loop import _class_weights, say_weights
 
 # ------------------------------------------------------------------------------------------------
 # Keypoint typing by local valence (stages/keypoints/valence.py)
@@ -166,6 +166,7 @@ def train_type_classifier(cfg: dict) -> dict:
               "val_accuracy_argmax": float((np.argmax(vx[:, :3], 1) == vy).mean()),
               "config": tc, "torch": str(torch.__version__)}
     clf.save(out / "type_classifier.npz")
+    say_weights(out / "type_classifier.npz")
     (out / "type_classifier.json").write_text(json.dumps(record, indent=2))
     print(f"type classifier: {record['keypoints']} keypoints ({len(vfiles)} vector files), generated validation accuracy "
           f"{record['val_accuracy']:.3f} (class-map argmax {record['val_accuracy_argmax']:.3f}), "

@@ -1,0 +1,123 @@
+"""Indexes of curve ends and vertices for the curve-editing loops of :mod:`stages.export.joins`.
+
+Contracting links and attaching spurs change a few curves at a time; these keep the curves' ends (by
+keypoint, and synthetic ends by position) and vertices in grids, so that each edit re-examines only the
+curves near it (near-linear in the number of curves, where a rescan of the whole list was quadratic),
+and :func:`_first_in_order` keeps the choice of a rescan: the first candidate in curve order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SAME_POINT_PX = 0.5     # synthetic ends this close are one point (topology puts shared ends on one vertex)
+
+
+def _end_state(c: dict, f: int) -> tuple:
+    """(type, keypoint, point) of end f of curve c."""
+    return c["end_types"][f], c["end_keypoints"][f], c["points"][0 if f == 0 else -1]
+
+
+def _first_in_order(heap: list, alive: dict, test) -> tuple | None:
+    """Pop curves off a min-heap of list positions until one passes ``test``: ``(curve, answer)``.
+
+    ``test`` answers None for a curve that is no candidate now.  The editing loops push a curve again
+    whenever an edit near it could change its answer, so the first curve that passes now is the one a
+    rescan of the whole list would find first; removed curves and duplicates on the heap are skipped.
+    """
+    import heapq
+
+    while heap:
+        i = heapq.heappop(heap)
+        if i in alive and (answer := test(i)) is not None:
+            return i, answer
+    return None
+
+
+class _PointGrid:
+    """Points in square cells, added and removed by owner: which lie near a point, in time ∝ those nearby.
+
+    The curve-editing loops below (contracting links, attaching spurs) change a few curves at a time;
+    with the points of every curve in one grid, each edit looks only at its own neighbourhood instead
+    of at every curve of the drawing.
+    """
+
+    def __init__(self, cell: float):
+        self.cell = float(cell)
+        self.cells: dict[tuple[int, int], dict] = {}   # cell -> {owner: indices of its points there}
+        self.owned: dict = {}                           # owner -> its cells
+
+    def add(self, owner, points: np.ndarray) -> None:
+        """Add an owner's points ((n, 2); indices are rows)."""
+        keys: dict = {}
+        for n, ij in enumerate(np.floor(np.asarray(points, np.float64) / self.cell).astype(np.int64).tolist()):
+            keys.setdefault(tuple(ij), []).append(n)
+        for key, idx in keys.items():
+            self.cells.setdefault(key, {})[owner] = idx
+        self.owned[owner] = list(keys)
+
+    def remove(self, owner) -> None:
+        """Remove all points of an owner (none: nothing happens)."""
+        for key in self.owned.pop(owner, ()):
+            cell = self.cells[key]
+            del cell[owner]
+            if not cell:
+                del self.cells[key]
+
+    def near(self, points: np.ndarray, r: float) -> dict:
+        """Owner -> indices of its points in the cells within ``r`` of any of ``points`` ((2,) or (n, 2)).
+
+        A superset of the points within ``r``: callers test the distance themselves.
+        """
+        ij = np.floor(np.asarray(points, np.float64).reshape(-1, 2) / self.cell).astype(np.int64)
+        d = int(np.ceil(r / self.cell))
+        if len(ij) == 1:                 # one point (most queries): its cells without numpy's unique
+            x, y = ij[0].tolist()
+            keys = [(x + a, y + b) for a in range(-d, d + 1) for b in range(-d, d + 1)]
+        else:
+            offsets = np.stack(np.meshgrid(np.arange(-d, d + 1), np.arange(-d, d + 1)), -1).reshape(-1, 2)
+            keys = map(tuple, np.unique((np.unique(ij, axis=0)[:, None, :] + offsets[None]).reshape(-1, 2),
+                                        axis=0).tolist())
+        out: dict = {}
+        for key in keys:
+            for owner, idx in self.cells.get(key, {}).items():
+                out.setdefault(owner, []).extend(idx)
+        return out
+
+
+class _EndIndex:
+    """The ends of a set of curves by keypoint and, for synthetic ends (type 0), by position."""
+
+    def __init__(self, curves: dict):
+        self.by_keypoint: dict = {}      # keypoint (−1 too) -> {(curve, end)}
+        self.synthetic = _PointGrid(_SAME_POINT_PX)
+        self.state: dict = {}            # (curve, end) -> (type, keypoint, point)
+        for n, c in curves.items():
+            self.add(n, c)
+
+    def add(self, n, c: dict) -> None:
+        for f in (0, 1):
+            t, k, p = self.state[(n, f)] = _end_state(c, f)
+            self.by_keypoint.setdefault(k, set()).add((n, f))
+            if t == 0:
+                self.synthetic.add((n, f), p[None])
+
+    def remove(self, n, c: dict) -> None:
+        for f in (0, 1):
+            self.by_keypoint[c["end_keypoints"][f]].discard((n, f))
+            self.synthetic.remove((n, f))
+            del self.state[(n, f)]
+
+    def synthetic_near(self, p: np.ndarray) -> list:
+        """Synthetic ends within ``_SAME_POINT_PX`` of p."""
+        return [o for o in self.synthetic.near(p, _SAME_POINT_PX)
+                if np.hypot(*(self.state[o][2] - p)) <= _SAME_POINT_PX]
+
+    def meeting(self, state: tuple) -> list:
+        """Ends that meet an end in ``state``: the same keypoint, or synthetic ends at the same point."""
+        t, k, p = state
+        if k >= 0:
+            return list(self.by_keypoint.get(k, ()))
+        if t != 0:
+            return []
+        return [o for o in self.synthetic_near(p) if self.state[o][1] < 0]
