@@ -345,3 +345,21 @@ def test_keypoints_edits_is_read_as_the_edits_stage_file():
     args, paths = split_arguments(["cat.png", "keypoints.edits=cat.keypoints.json", "flow.lam=0.5"])
     assert paths == ["cat.png"]
     assert args == ["keypoint_edits.file=cat.keypoints.json", "flow.lam=0.5"]
+
+
+@pytest.mark.slow
+def test_readme_inspect_commands(tmp_path, cli):
+    """Every command of the README's "Inspecting intermediate artifacts" block works as written,
+    after the README's first command has vectorised the bundled example (stopped after graph)."""
+    import shlex
+
+    assert cli("runtime.until=graph", "runtime.cluster=sync", cwd=tmp_path).returncode == 0
+    commands = _readme_block("## Inspecting intermediate artifacts")
+    assert len(commands) == 4
+    for command in commands:
+        args = shlex.split(command)
+        assert args[0] == "polyvec-inspect"
+        proc = cli(*args[1:], cwd=tmp_path, module="pipeline.inspect")
+        assert proc.returncode == 0, (command, proc.stderr)
+    assert "polyvec-example.png" in cli("list", cwd=tmp_path, module="pipeline.inspect").stdout
+    assert (tmp_path / "field.png").stat().st_size > 1000
