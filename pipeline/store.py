@@ -5,6 +5,8 @@ Layout under the store root::
     <stage>/<key[:2]>/<key>/arrays.zarr     one zarr v3 group, one array per artifact array
     <stage>/<key[:2]>/<key>/data.json       the artifact's small structured data
     <stage>/<key[:2]>/<key>/manifest.json   stage, version, config, inputs, timings, library versions
+    .items/<stage>/<key[:2]>/<key>.npz      per-item results of a per-item stage (the flow's paths),
+                                            reused across artifacts (:mod:`pipeline.runner`)
     .tmp/<uuid>/                            artifacts being written
 
 An artifact is written completely into ``.tmp/<uuid>`` and then renamed into place. A rename of a
@@ -12,13 +14,17 @@ directory is atomic on a local file system, so a reader either sees the whole ar
 run killed half-way (Ctrl-C, ``kill -9``) leaves only an orphan under ``.tmp`` that is never read and
 is swept at the next run. On an fsspec URL (``memory://``, ``s3://`` …) the manifest is written last
 and an artifact only counts as present when its manifest is, which gives the same guarantee for
-readers that go through this class.
+readers that go through this class. A per-item result is one ``.npz`` file, written to ``.tmp`` and
+renamed the same way; one that is missing or unreadable (truncated, corrupted: the zip's CRC) is
+simply absent, and the engine computes the item again.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import zipfile
 import os
 import shutil
 import time
@@ -31,6 +37,7 @@ import numpy as np
 from stages.artifact import Artifact
 
 MANIFEST = "manifest.json"
+ITEMS = ".items"
 DATA = "data.json"
 ARRAYS = "arrays.zarr"
 
@@ -59,6 +66,26 @@ def artifact_key(stage: str, version: str, config: Any, inputs: dict[str, str]) 
     """Key of a stage artifact: hash of stage name, version, its config section and input keys."""
     payload = canonical_json({"stage": stage, "version": version, "config": config, "inputs": inputs})
     return hashlib.sha256(payload.encode()).hexdigest()[:32]
+
+
+def item_keys(stage: str, version: str, context: Any, inputs: dict[str, str],
+              items: list[tuple[np.ndarray, ...]]) -> list[str]:
+    """Keys of the items of a per-item stage (:class:`stages.artifact.ItemPlan`).
+
+    Each hashes the stage, its version, the plan's context, the keys of the inputs every item depends
+    on, and the item's own arrays (dtype, shape and bytes).
+    """
+    head = hashlib.sha256(canonical_json({"stage": stage, "version": version, "context": context,
+                                          "inputs": inputs}).encode())
+    keys = []
+    for item in items:
+        h = head.copy()
+        for a in item:
+            a = np.ascontiguousarray(a)
+            h.update(f"|{a.dtype.str}{a.shape}|".encode())
+            h.update(a.tobytes())
+        keys.append(h.hexdigest()[:32])
+    return keys
 
 
 def library_versions() -> dict[str, str]:
@@ -168,6 +195,49 @@ class ArtifactStore:
         protocol = self.fs.protocol if isinstance(self.fs.protocol, str) else self.fs.protocol[0]
         return FsspecStore.from_url(f"{protocol}://{path}", read_only=read_only)
 
+    def item_path(self, stage: str, key: str) -> str:
+        """File (or URL path) of one per-item result."""
+        return self._join(ITEMS, stage, key[:2], f"{key}.npz")
+
+    def save_item(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> None:
+        """Write one per-item result atomically (a temporary file renamed into place).
+
+        Parameters
+        ----------
+        stage : str
+        key : str
+            The item's key (:func:`item_keys`).
+        arrays : dict of str to numpy.ndarray
+        """
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        final = self.item_path(stage, key)
+        self.fs.makedirs(self._join(ITEMS, stage, key[:2]), exist_ok=True)
+        if not self.local:
+            # fsspec back-ends write an object in one piece: nothing half-written is ever listed.
+            with self.fs.open(final, "wb") as f:
+                f.write(buf.getvalue())
+            return
+        self.fs.makedirs(self._join(".tmp"), exist_ok=True)
+        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.npz")
+        try:
+            with open(tmp, "wb") as f:
+                f.write(buf.getvalue())
+            os.replace(tmp, final)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+    def load_item(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
+        """One per-item result, or None when it is missing or unreadable (it is then computed again)."""
+        try:
+            with self.fs.open(self.item_path(stage, key), "rb") as f:
+                raw = f.read()
+            with np.load(io.BytesIO(raw), allow_pickle=False) as npz:
+                return {name: npz[name] for name in npz.files}
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+            return None
+
     # -- reading -------------------------------------------------------------------------------
     def load(self, stage: str, key: str) -> Artifact:
         """Read an artifact; raises ``KeyError`` when it is not (completely) stored."""
@@ -218,7 +288,10 @@ class ArtifactStore:
         for entry in os.scandir(tmp):
             try:
                 if now - entry.stat().st_mtime > older_than_s:
-                    shutil.rmtree(entry.path, ignore_errors=True)
+                    if entry.is_dir(follow_symlinks=False):
+                        shutil.rmtree(entry.path, ignore_errors=True)
+                    else:  # a per-item result being written
+                        os.remove(entry.path)
                     n += 1
             except OSError:
                 pass

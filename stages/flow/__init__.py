@@ -280,6 +280,7 @@ def path_energy(c0: np.ndarray, c2: np.ndarray, xy: np.ndarray, centres: np.ndar
 #: The paths are independent items (:class:`stages.artifact.ItemPlan`): the engine may reuse a path's
 #: stored result whenever the path, these inputs' artifacts and the effective config are unchanged.
 ITEM_INPUTS = ("field",)
+ITEM_NAME = "paths"
 
 
 @dataclass
@@ -309,8 +310,8 @@ def plan_items(cfg: dict, **inputs: Artifact) -> ItemPlan:
     -------
     ItemPlan
         ``items``: per path, its ``xy``, ``widths`` and ``interest_dist`` (float64, topology order);
-        ``context``: the effective config (iterations after the ``max_vertices`` guard), so that a
-        path's result never mixes with one flowed under another iteration count.
+        ``context``: the effective config (iterations after the ``max_vertices`` guard, which itself
+        is left out), so that a path's result never mixes with one flowed under another iteration count.
     """
     params = from_section(FlowConfig, cfg, "flow")
     for name in ("prep", "field", "topology"):
@@ -346,8 +347,12 @@ def plan_items(cfg: dict, **inputs: Artifact) -> ItemPlan:
                      f"{its} iterations instead of {params.iterations}")
         params = replace(params, iterations=its)
     work = _FlowWork(c0, c2, xys, widths, interest, [int(p["id"]) for p in paths], params)
+    # A path's result depends on the config through the effective iterations, not on max_vertices:
+    # the guard couples the paths, and keying on its outcome keeps results of different iteration
+    # counts apart while a max_vertices that does not bind leaves the stored paths usable.
+    context = {k: v for k, v in asdict(params).items() if k != "max_vertices"}
     return ItemPlan(items=[(xy, wd, dd) for xy, wd, dd in zip(xys, widths, interest)],
-                    context={"flow": asdict(params)}, work=work, notes=notes)
+                    context={"flow": context}, work=work, notes=notes)
 
 
 def run_items(plan: ItemPlan, which: list[int]) -> list[dict[str, np.ndarray]]:
