@@ -224,11 +224,11 @@ def test_a_corrupted_or_missing_stored_path_is_flowed_again(tmp_path, compose_cf
     store = ArtifactStore(tmp_path / "store")
     first = run_batch([img], cfg).results[str(img)]["flow"]
     reference = store.load("flow", first.key)
-    items = sorted((tmp_path / "store" / ".items" / "flow").rglob("*.npz"))
+    items = sorted((tmp_path / "store" / ".items" / "flow").rglob("*.item"))
     assert len(items) == first.items[1]
     items[0].write_bytes(items[0].read_bytes()[:100])                    # truncated
     raw = bytearray(items[1].read_bytes())
-    raw[len(raw) // 2] ^= 0xFF                                           # one flipped byte (the zip's CRC)
+    raw[len(raw) // 2] ^= 0xFF                                           # one flipped byte (the digest)
     items[1].write_bytes(bytes(raw))
     items[2].unlink()                                                    # missing
     shutil.rmtree(store.path_for("flow", first.key))
