@@ -83,6 +83,9 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   afn`` only: ``reassoc`` makes results differ from run to run, and ``nnan``/``ninf`` would remove
   the non-finite check.  A block whose solve turns non-finite stops and keeps its last finite
   iterate (``data["failed"]``).
+* **A path's result depends on that path alone, to the last bit** (each path is resampled in its own
+  arc length): the engine reuses the stored results of unchanged paths after a keypoint correction
+  (:func:`plan_items`, :func:`run_items`, :func:`assemble`; keyed with the effective iterations).
 
 References
 ----------
