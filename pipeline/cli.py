@@ -19,7 +19,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.registry import StageUnavailable
+from pipeline.registry import BY_NAME, StageUnavailable
 from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, write_outputs
 from pipeline.store import ArtifactStore
 
@@ -209,6 +209,13 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
             r = per.get(stage)
             for note in (r.warnings if r is not None else ()):
                 console.print(f"[yellow]warning[/] {image}: {stage}: {note}", highlight=False, soft_wrap=True)
+    for stage in batch.stages:
+        # per-item stages: how much of the work earlier runs had done (one line per stage, not per image)
+        done = [per[stage].items for per in batch.results.values() if stage in per and per[stage].items]
+        if done:
+            name = getattr(BY_NAME[stage].load(), "ITEM_NAME", "items")
+            console.print(f"{stage}: {sum(d[0] for d in done)} of {sum(d[1] for d in done)} {name} reused "
+                          "from earlier runs", highlight=False, soft_wrap=True)
     for image, files in batch.outputs.items():
         console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True)
 

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from pipeline.registry import BY_NAME, StageSpec, active_stages
-from pipeline.store import ArtifactStore, artifact_key, hash_bytes, library_versions
+from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -56,6 +56,7 @@ class TaskResult:
     detail: str | None = None
     duration_s: float = 0.0
     warnings: tuple[str, ...] = ()  # the artifact's guard notes (computed now; a cached one keeps them in its manifest)
+    items: tuple[int, int] | None = None  # a per-item stage computed now: (items reused from the store, items)
 
 
 @dataclass
@@ -215,6 +216,42 @@ def load_artifact(store: ArtifactStore, stage: str, key: str):
     return artifact
 
 
+def run_per_item(module, task: Task, store: ArtifactStore, inputs: dict) -> tuple[Any, tuple[int, int]]:
+    """Run a per-item stage (:class:`stages.artifact.ItemPlan`), reusing the items stored by earlier runs.
+
+    After a keypoint correction most of the flow's paths are unchanged: their flowed curves are read
+    back instead of flowed again. An item's key hashes its own arrays, the plan's context and the keys
+    of the stage's ``ITEM_INPUTS``, so a reused result is the one the stage would compute, and the
+    artifact is the one ``module.run`` gives, byte for byte (the stage's items are independent:
+    tested). A missing or unreadable item is computed again.
+
+    Parameters
+    ----------
+    module : module
+        The stage, exposing ``ITEM_INPUTS``, ``plan_items``, ``run_items`` and ``assemble``.
+    task : Task
+    store : ArtifactStore
+    inputs : dict
+        The loaded input artifacts.
+
+    Returns
+    -------
+    artifact : stages.artifact.Artifact
+    items : tuple of int
+        (items reused, items).
+    """
+    plan = module.plan_items(dict(task.config), **inputs)
+    keys = item_keys(task.stage, task.version, plan.context, {i: task.inputs[i] for i in module.ITEM_INPUTS},
+                     plan.items)
+    results = [store.load_item(task.stage, k) for k in keys]
+    missing = [i for i, r in enumerate(results) if r is None]
+    if missing:
+        for i, r in zip(missing, module.run_items(plan, missing)):
+            store.save_item(task.stage, keys[i], r)
+            results[i] = r
+    return module.assemble(plan, results), (len(keys) - len(missing), len(keys))
+
+
 def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
     """Run one task in a worker: load inputs, run the stage, store the artifact."""
     from stages.errors import InputError
@@ -243,7 +280,11 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
             kwargs = {"image_bytes": data, "image_name": Path(task.image).name}
         else:
             kwargs = {name: load_artifact(store, name, key) for name, key in task.inputs.items()}
-        artifact = module.run(dict(task.config), **kwargs)
+        items = None
+        if hasattr(module, "plan_items"):
+            artifact, items = run_per_item(module, task, store, kwargs)
+        else:
+            artifact = module.run(dict(task.config), **kwargs)
         duration = time.perf_counter() - t0
         manifest = {
             "stage": task.stage, "version": task.version, "key": task.key, "config": task.config,
@@ -255,10 +296,12 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
         }
         if artifact.notes:
             manifest["warnings"] = list(artifact.notes)
+        if items is not None:
+            manifest["items"] = {"reused": items[0], "total": items[1]}
         store.save(task.stage, task.key, artifact, manifest)
         _remember(task.stage, task.key, artifact)
         return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration,
-                          warnings=tuple(artifact.notes))
+                          warnings=tuple(artifact.notes), items=items)
     except InputError as exc:
         return TaskResult(task.image, task.stage, task.key, "failed", error=str(exc),
                           duration_s=time.perf_counter() - t0)

@@ -56,3 +56,32 @@ def pack_ragged(parts: list[np.ndarray], dtype=None) -> tuple[np.ndarray, np.nda
 def unpack_ragged(flat: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     """Inverse of :func:`pack_ragged`."""
     return [flat[offsets[k]:offsets[k + 1]] for k in range(len(offsets) - 1)]
+
+
+@dataclass
+class ItemPlan:
+    """A stage's work as independent items, for a stage whose engine may reuse per-item results.
+
+    A per-item stage module exposes, beside ``run``: ``ITEM_INPUTS`` (the input stages every item's
+    result depends on, besides the item's own content), ``plan_items(cfg, **inputs) -> ItemPlan``,
+    ``run_items(plan, which) -> list[dict]`` (results of the items ``which``: dicts of numpy arrays,
+    each a function of that item, ``context`` and the ``ITEM_INPUTS`` artifacts only) and
+    ``assemble(plan, results) -> Artifact``; ``run`` must equal assemble of run_items of every item.
+
+    Parameters
+    ----------
+    items : list of tuple of numpy.ndarray
+        Each item's content: the arrays whose bytes identify it.
+    context : dict
+        JSON-serialisable; what every item's result depends on besides its content and the
+        ``ITEM_INPUTS`` artifacts (e.g. the effective config).
+    work : Any
+        Stage-private state handed back to ``run_items`` and ``assemble``.
+    notes : list of str
+        The guard notes of the whole artifact (see :class:`Artifact`).
+    """
+
+    items: list[tuple[np.ndarray, ...]]
+    context: dict[str, Any]
+    work: Any = None
+    notes: list[str] = field(default_factory=list)

@@ -83,6 +83,9 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   afn`` only: ``reassoc`` makes results differ from run to run, and ``nnan``/``ninf`` would remove
   the non-finite check.  A block whose solve turns non-finite stops and keeps its last finite
   iterate (``data["failed"]``).
+* **A path's result depends on that path alone, to the last bit** (each path is resampled in its own
+  arc length): the engine reuses the stored results of unchanged paths after a keypoint correction
+  (:func:`plan_items`, :func:`run_items`, :func:`assemble`; keyed with the effective iterations).
 
 References
 ----------
@@ -94,12 +97,12 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numba
 import numpy as np
 
-from stages.artifact import Artifact, pack_ragged
+from stages.artifact import Artifact, ItemPlan, pack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.flow.kernel import _flow_kernel, _pack_field, bilinear_with_gradient
@@ -277,24 +280,41 @@ def path_energy(c0: np.ndarray, c2: np.ndarray, xy: np.ndarray, centres: np.ndar
     return float(((g + np.maximum(1.0 - s, 0.0) + lam) * q).sum())
 
 
-def run(cfg: dict, **inputs: Artifact) -> Artifact:
-    """Stage entry: flow every candidate path of the topology artifact.
+#: The paths are independent items (:class:`stages.artifact.ItemPlan`): the engine may reuse a path's
+#: stored result whenever the path, these inputs' artifacts and the effective config are unchanged.
+ITEM_INPUTS = ("field",)
+ITEM_NAME = "paths"
+
+
+@dataclass
+class _FlowWork:
+    """The stage-private part of the flow's :class:`ItemPlan`: what flowing any subset of the paths needs."""
+
+    c0: np.ndarray
+    c2: np.ndarray
+    xys: list[np.ndarray]
+    widths: list[np.ndarray]
+    interest: list[np.ndarray]
+    ids: list[int]
+    params: FlowConfig  # effective: the max_vertices guard may have lowered the iterations
+
+
+def plan_items(cfg: dict, **inputs: Artifact) -> ItemPlan:
+    """The flow's work as independent items, one per candidate path (checks the inputs as :func:`run`).
 
     Parameters
     ----------
     cfg : dict
-        The ``flow`` config section (keys of :class:`FlowConfig`).
+        The ``flow`` config section.
     prep, field, graph, topology : Artifact
-        ``field`` supplies ``c0_ext``/``c2_ext``; ``topology`` the paths (``xy``, ``widths``,
-        ``interest_dist``); ``prep`` the image size.  ``graph`` is not read (widths and distances
-        come with the paths).
+        As for :func:`run`.
 
     Returns
     -------
-    Artifact
-        Arrays ``curve_xy`` float64 (n, 2) + ``curve_xy_offsets``; data ``energies``,
-        ``energies_initial`` (Eq. 6a, per path, topology order), ``resamples``, ``failed`` (ids),
-        ``n_vertices``.
+    ItemPlan
+        ``items``: per path, its ``xy``, ``widths`` and ``interest_dist`` (float64, topology order);
+        ``context``: the effective config (iterations after the ``max_vertices`` guard, which itself
+        is left out), so that a path's result never mixes with one flowed under another iteration count.
     """
     params = from_section(FlowConfig, cfg, "flow")
     for name in ("prep", "field", "topology"):
@@ -329,13 +349,76 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         notes.append(f"about {n_vert:.0f} path vertices, more than flow.max_vertices ({params.max_vertices}): "
                      f"{its} iterations instead of {params.iterations}")
         params = replace(params, iterations=its)
-    res = polyvector_flow(c0, c2, xys, widths, interest, params)
-    flat, off = pack_ragged(res.curves, dtype=np.float64)
+    work = _FlowWork(c0, c2, xys, widths, interest, [int(p["id"]) for p in paths], params)
+    # A path's result depends on the config through the effective iterations, not on max_vertices:
+    # the guard couples the paths, and keying on its outcome keeps results of different iteration
+    # counts apart while a max_vertices that does not bind leaves the stored paths usable.
+    context = {k: v for k, v in asdict(params).items() if k != "max_vertices"}
+    return ItemPlan(items=[(xy, wd, dd) for xy, wd, dd in zip(xys, widths, interest)],
+                    context={"flow": context}, work=work, notes=notes)
+
+
+def run_items(plan: ItemPlan, which: list[int]) -> list[dict[str, np.ndarray]]:
+    """Flow the paths ``which`` of a plan (each path's result depends on that path alone).
+
+    Parameters
+    ----------
+    plan : ItemPlan
+        From :func:`plan_items`.
+    which : list of int
+        Path indices (topology order).
+
+    Returns
+    -------
+    list of dict
+        Per path: ``curve`` float64 (n, 2), and 0-d ``energy``, ``energy_initial`` (float64),
+        ``resamples``, ``rejected``, ``failed`` (int64).
+    """
+    w: _FlowWork = plan.work
+    res = polyvector_flow(w.c0, w.c2, [w.xys[i] for i in which], [w.widths[i] for i in which],
+                          [w.interest[i] for i in which], w.params)
+    return [{"curve": res.curves[k], "energy": np.float64(res.energies[k]),
+             "energy_initial": np.float64(res.energies_initial[k]), "resamples": np.int64(res.resamples[k]),
+             "rejected": np.int64(res.rejected[k]), "failed": np.int64(res.failed[k])}
+            for k in range(len(which))]
+
+
+def assemble(plan: ItemPlan, results: list[dict[str, np.ndarray]]) -> Artifact:
+    """The flow artifact from every path's result (as :func:`run_items` returns them), in topology order."""
+    w: _FlowWork = plan.work
+    flat, off = pack_ragged([np.asarray(r["curve"], dtype=np.float64).reshape(-1, 2) for r in results],
+                            dtype=np.float64)
     return Artifact(
         arrays={"curve_xy": flat.reshape(-1, 2), "curve_xy_offsets": off},
-        data={"energies": [float(e) for e in res.energies],
-              "energies_initial": [float(e) for e in res.energies_initial],
-              "resamples": int(res.resamples.sum()),
-              "rejected_steps": int(res.rejected.sum()),
-              "failed": [int(p["id"]) for p, f in zip(paths, res.failed) if f],
-              "n_vertices": int(len(flat))}, notes=notes)
+        data={"energies": [float(r["energy"]) for r in results],
+              "energies_initial": [float(r["energy_initial"]) for r in results],
+              "resamples": int(sum(int(r["resamples"]) for r in results)),
+              "rejected_steps": int(sum(int(r["rejected"]) for r in results)),
+              "failed": [pid for pid, r in zip(w.ids, results) if int(r["failed"])],
+              "n_vertices": int(len(flat))}, notes=list(plan.notes))
+
+
+def run(cfg: dict, **inputs: Artifact) -> Artifact:
+    """Stage entry: flow every candidate path of the topology artifact.
+
+    The engine may instead reuse stored paths: :func:`plan_items`, :func:`run_items` on the paths it
+    lacks, :func:`assemble` — the same artifact, byte for byte.
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``flow`` config section (keys of :class:`FlowConfig`).
+    prep, field, graph, topology : Artifact
+        ``field`` supplies ``c0_ext``/``c2_ext``; ``topology`` the paths (``xy``, ``widths``,
+        ``interest_dist``); ``prep`` the image size.  ``graph`` is not read (widths and distances
+        come with the paths).
+
+    Returns
+    -------
+    Artifact
+        Arrays ``curve_xy`` float64 (n, 2) + ``curve_xy_offsets``; data ``energies``,
+        ``energies_initial`` (Eq. 6a, per path, topology order), ``resamples``, ``failed`` (ids),
+        ``n_vertices``.
+    """
+    plan = plan_items(cfg, **inputs)
+    return assemble(plan, run_items(plan, list(range(len(plan.items)))))

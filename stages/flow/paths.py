@@ -1,5 +1,8 @@
-"""Preparation of the flow: every path resampled uniformly and its barrier centres, vectorised over all
-paths (the blocks the kernel of :mod:`stages.flow.kernel` runs on).
+"""Preparation of the flow: every path resampled uniformly and its barrier centres, packed into the
+blocks the kernel of :mod:`stages.flow.kernel` runs on.
+
+Each path is prepared in its own arc length, never on an axis shared with the other paths, so that a
+path's blocks — and its flowed curve — are bit-identical whichever other paths are flowed with it.
 """
 
 from __future__ import annotations
@@ -13,32 +16,6 @@ from stages.artifact import pack_ragged
 
 if TYPE_CHECKING:
     from stages.flow import FlowConfig
-
-
-def _local_arclength(xy: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Cumulative arc length of every point within its own path (0 at each path's start)."""
-    n = len(xy)
-    seg = np.zeros(n)
-    if n > 1:
-        seg[1:] = np.hypot(xy[1:, 0] - xy[:-1, 0], xy[1:, 1] - xy[:-1, 1])
-    seg[offsets[:-1][offsets[:-1] < n]] = 0.0
-    cum = np.cumsum(seg)
-    lengths = np.diff(offsets)
-    return cum - np.repeat(cum[offsets[:-1]] if n else np.zeros(0), lengths)
-
-
-def _global_param(local: np.ndarray, offsets: np.ndarray, totals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Map per-path parameters onto one strictly increasing axis (for a single ``np.interp``).
-
-    Returns the mapped knots and each path's base; a query ``u`` on path ``p`` maps to ``u + base[p]``.
-    """
-    lengths = np.diff(offsets)
-    base = np.zeros(len(lengths))
-    if len(lengths) > 1:
-        base[1:] = np.cumsum(totals[:-1] + 1.0)
-    idx_local = np.arange(len(local)) - np.repeat(offsets[:-1], lengths)
-    # Repeated points would give repeated knots; a sub-nanometre ramp keeps them increasing.
-    return local + 1e-9 * idx_local + np.repeat(base, lengths), base
 
 
 @dataclass
@@ -92,9 +69,61 @@ def _safe_radius(centres: np.ndarray, sigma: np.ndarray, coff: np.ndarray, cutof
     return np.where(good, lo, 0.0)
 
 
+def _prepare_one(xy: np.ndarray, w: np.ndarray, dd: np.ndarray, params: FlowConfig):
+    """Resample one path and place its barrier centres, in the path's own arc length.
+
+    Every quantity is computed from this path alone, so a path prepared with any other set of paths
+    is bit-identical (the engine's per-path memo of the flow relies on it; a shared arc-length axis
+    over all paths rounded each path differently depending on the paths before it).
+
+    Returns
+    -------
+    tuple
+        ``z`` (resampled vertices), ``centres``, ``sigma``, ``dist`` (per centre) and ``home`` (per
+        vertex: local index of the nearest centre in arc length to the midpoint of the edge ending there).
+    """
+    n = len(xy)
+    s = np.zeros(n)
+    if n > 1:
+        np.cumsum(np.hypot(xy[1:, 0] - xy[:-1, 0], xy[1:, 1] - xy[:-1, 1]), out=s[1:])
+    total = s[-1]
+    # Repeated points would give repeated knots; a sub-nanometre ramp keeps them increasing.
+    ramp = 1e-9 * np.arange(n)
+    gs = s + ramp
+
+    # Vertices: uniform in arc length, `spacing` apart (at least the two ends).
+    nv = 2 if n == 1 else max(int(np.ceil(total / params.spacing)), 1) + 1
+    sv = np.arange(nv) / max(nv - 1, 1) * total
+    z = np.interp(sv, gs, xy[:, 0]) + 1j * np.interp(sv, gs, xy[:, 1])
+    # Exact endpoints (they are the keypoints and stay fixed).
+    z[0] = xy[0, 0] + 1j * xy[0, 1]
+    z[-1] = xy[-1, 0] + 1j * xy[-1, 1]
+
+    # Barrier centres: uniform in u = ∫ ds/σ, `barrier_spacing` apart.
+    sig = np.maximum(w / params.barrier.sigma_scale, params.barrier.sigma_min)
+    u = np.zeros(n)
+    if n > 1:
+        np.cumsum((s[1:] - s[:-1]) * 0.5 * (1.0 / sig[1:] + 1.0 / sig[:-1]), out=u[1:])
+    utot = u[-1]
+    nc = max(int(np.ceil(utot / params.barrier.spacing)), 1) + 1
+    uc = np.arange(nc) / (nc - 1) * utot
+    sc = np.interp(uc, u + ramp, s)                     # arc length of each centre
+    centres = np.interp(sc, gs, xy[:, 0]) + 1j * np.interp(sc, gs, xy[:, 1])
+    csig = np.maximum(np.interp(sc, gs, w) / params.barrier.sigma_scale, params.barrier.sigma_min)
+    cdist = np.interp(sc, gs, dd)
+
+    # Home centre of each edge midpoint: nearest in arc length (the kernel refines it spatially).
+    smid = sv - 0.5 * (total / max(nv - 1, 1))
+    pos = np.searchsorted(sc, smid)
+    lo = np.clip(pos - 1, 0, nc - 1)
+    hi = np.clip(pos, 0, nc - 1)
+    home = np.where(np.abs(sc[hi] - smid) < np.abs(sc[lo] - smid), hi, lo).astype(np.int64)
+    return z, centres, csig, cdist, home
+
+
 def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: list[np.ndarray],
                   params: FlowConfig) -> _Batch:
-    """Resample every path and place its barrier centres.
+    """Resample every path and place its barrier centres (each path on its own: :func:`_prepare_one`).
 
     Parameters
     ----------
@@ -109,65 +138,17 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     -------
     _Batch
     """
-    npath = len(xys)
-    xy, off = pack_ragged([np.asarray(a, dtype=np.float64).reshape(-1, 2) for a in xys], dtype=np.float64)
-    xy = xy.reshape(-1, 2)
-    w, _ = pack_ragged([np.asarray(a, dtype=np.float64).ravel() for a in widths], dtype=np.float64)
-    dd, _ = pack_ragged([np.asarray(a, dtype=np.float64).ravel() for a in interest], dtype=np.float64)
-    counts = np.diff(off)
-    s = _local_arclength(xy, off)
-    total = s[off[1:] - 1] if npath else np.zeros(0)
-    gs, base = _global_param(s, off, total)
-
-    # Vertices: uniform in arc length, `spacing` apart (at least the two ends).
-    nv = np.maximum(np.ceil(total / params.spacing).astype(np.int64), 1) + 1
-    nv[counts == 1] = 2
-    zoff = np.zeros(npath + 1, dtype=np.int64)
-    np.cumsum(nv, out=zoff[1:])
-    vpath = np.repeat(np.arange(npath), nv)
-    vloc = np.arange(zoff[-1]) - zoff[:-1][vpath]
-    sv = vloc / np.maximum(nv - 1, 1)[vpath] * total[vpath]
-    gq = sv + base[vpath]
-    z = np.interp(gq, gs, xy[:, 0]) + 1j * np.interp(gq, gs, xy[:, 1])
-    # Exact endpoints (they are the keypoints and stay fixed).
-    z[zoff[:-1]] = xy[off[:-1], 0] + 1j * xy[off[:-1], 1]
-    z[zoff[1:] - 1] = xy[off[1:] - 1, 0] + 1j * xy[off[1:] - 1, 1]
-
-    # Barrier centres: uniform in u = ∫ ds/σ, `barrier_spacing` apart.
-    sig = np.maximum(w / params.barrier.sigma_scale, params.barrier.sigma_min)
-    du = np.zeros(len(xy))
-    if len(xy) > 1:
-        du[1:] = (s[1:] - s[:-1]) * 0.5 * (1.0 / sig[1:] + 1.0 / sig[:-1])
-    du[off[:-1]] = 0.0
-    u = np.cumsum(du)
-    u = u - np.repeat(u[off[:-1]], counts)
-    utot = u[off[1:] - 1]
-    gu, ubase = _global_param(u, off, utot)
-    nc = np.maximum(np.ceil(utot / params.barrier.spacing).astype(np.int64), 1) + 1
-    coff = np.zeros(npath + 1, dtype=np.int64)
-    np.cumsum(nc, out=coff[1:])
-    cpath = np.repeat(np.arange(npath), nc)
-    cloc = np.arange(coff[-1]) - coff[:-1][cpath]
-    uc = cloc / (nc - 1)[cpath] * utot[cpath]
-    sc = np.interp(uc + ubase[cpath], gu, s)           # arc length of each centre
-    gcs = sc + base[cpath]
-    centres = np.interp(gcs, gs, xy[:, 0]) + 1j * np.interp(gcs, gs, xy[:, 1])
-    csig = np.maximum(np.interp(gcs, gs, w) / params.barrier.sigma_scale, params.barrier.sigma_min)
-    cdist = np.interp(gcs, gs, dd)
-
-    # Home centre of each edge midpoint: nearest in arc length (the kernel refines it spatially).
-    smid = sv - 0.5 * (total / np.maximum(nv - 1, 1))[vpath]
-    key_c = gcs
-    key_m = smid + base[vpath]
-    pos = np.searchsorted(key_c, key_m)
-    lo = np.clip(pos - 1, coff[:-1][vpath], coff[1:][vpath] - 1)
-    hi = np.clip(pos, coff[:-1][vpath], coff[1:][vpath] - 1)
-    pick = np.where(np.abs(key_c[hi] - key_m) < np.abs(key_c[lo] - key_m), hi, lo)
-    home = (pick - coff[:-1][vpath]).astype(np.int64)
+    parts = [_prepare_one(np.asarray(xy, dtype=np.float64).reshape(-1, 2), np.asarray(w, dtype=np.float64).ravel(),
+                          np.asarray(dd, dtype=np.float64).ravel(), params)
+             for xy, w, dd in zip(xys, widths, interest)]
+    z, zoff = pack_ragged([p[0] for p in parts], dtype=np.complex128)
+    centres, coff = pack_ragged([p[1] for p in parts], dtype=np.complex128)
+    sigma, _ = pack_ragged([p[2] for p in parts], dtype=np.float64)
+    dist, _ = pack_ragged([p[3] for p in parts], dtype=np.float64)
+    home, _ = pack_ragged([p[4] for p in parts], dtype=np.int64)
     window = np.ceil(params.barrier.cutoff / params.barrier.spacing).astype(np.int64) + 2
-    window = np.full(npath, window, dtype=np.int64)
-    rho = _safe_radius(centres, csig, coff, params.barrier.cutoff)
-    return _Batch(z=z.astype(np.complex128), zoff=zoff, centres=centres.astype(np.complex128), sigma=csig,
-                  rho2=rho * rho, dist=cdist, coff=coff, home=home, window=window)
-
-
+    window = np.full(len(xys), window, dtype=np.int64)
+    # Per centre, from its own path's neighbours only (elementwise: independent of the other paths).
+    rho = _safe_radius(centres, sigma, coff, params.barrier.cutoff)
+    return _Batch(z=z, zoff=zoff, centres=centres, sigma=sigma, rho2=rho * rho, dist=dist, coff=coff,
+                  home=home, window=window)

@@ -80,6 +80,9 @@ def main(argv: list[str]) -> int:
         recomputed = [f"{r[0]} {float(r[5]):.2f} s" for r in rows if r[1] == "1"]
         print(f"corrected re-run (junction added): {batch:6.2f} s batch, {wall:6.2f} s command "
               f"(target ≤ 2 s); recomputed: {', '.join(recomputed)}")
+        reused = re.search(r"flow: \d+ of \d+ paths reused[^\n]*", log)
+        if reused:
+            print(f"                                   {reused.group(0)}")
         sys.path.insert(0, str(REPO))
         from pipeline.page import latest_keys, write_page
         from pipeline.store import ArtifactStore

@@ -166,3 +166,94 @@ def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
     with pytest.raises(registry.StageUnavailable, match="stage graph: cannot import stages.no_such_module"):
         registry.active_stages()
     assert [s.name for s in registry.active_stages("field")] == ["prep", "field"]
+
+
+# -- the per-path memo of the flow (a per-item stage) ---------------------------------------------
+def _example(folder):
+    folder.mkdir()
+    img = folder / "drawing.png"
+    img.write_bytes(synthetic.example_drawing().png_bytes())
+    return img
+
+
+def _add_junction(img):
+    import json
+
+    img.with_name(img.stem + ".keypoints.json").write_text(json.dumps(
+        {"format": "polyvec-keypoint-edits", "version": 1, "added": [{"x": 40.0, "y": 150.0, "type": "junction"}]}))
+
+
+def _same_artifact(a, b):
+    assert a.data == b.data
+    assert set(a.arrays) == set(b.arrays)
+    for name in a.arrays:
+        assert a.arrays[name].dtype == b.arrays[name].dtype and a.arrays[name].tobytes() == b.arrays[name].tobytes()
+
+
+def test_a_keypoint_edit_reruns_the_flow_on_the_changed_paths_only(tmp_path, compose_cfg):
+    """After a keypoint correction the flow reuses the unchanged paths' stored results, and the flow
+    artifact and SVG are byte-identical to those of a run with the same edits on an empty store."""
+    from pipeline.store import ArtifactStore
+
+    img = _example(tmp_path / "in")
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync")
+    first = run_batch([img], cfg).results[str(img)]
+    assert first["flow"].items[0] == 0 and first["flow"].items[1] > 5
+    _add_junction(img)
+    edited = run_batch([img], cfg).results[str(img)]
+    assert edited["topology"].status == "computed" and edited["flow"].status == "computed"
+    reused, total = edited["flow"].items
+    assert 0 < reused < total
+    assert ArtifactStore(tmp_path / "store").manifest("flow", edited["flow"].key)["items"] == {
+        "reused": reused, "total": total}
+    fresh = run_batch([img], compose_cfg(f"store.path={tmp_path / 'fresh'}", "runtime.cluster=sync"))
+    fresh = fresh.results[str(img)]
+    assert fresh["flow"].items == (0, total) and fresh["flow"].key == edited["flow"].key
+    for stage in ("flow", "export"):
+        _same_artifact(ArtifactStore(tmp_path / "store").load(stage, edited[stage].key),
+                       ArtifactStore(tmp_path / "fresh").load(stage, fresh[stage].key))
+
+
+def test_a_corrupted_or_missing_stored_path_is_flowed_again(tmp_path, compose_cfg):
+    import shutil
+
+    from pipeline.store import ArtifactStore
+
+    img = _example(tmp_path / "in")
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=flow")
+    store = ArtifactStore(tmp_path / "store")
+    first = run_batch([img], cfg).results[str(img)]["flow"]
+    reference = store.load("flow", first.key)
+    items = sorted((tmp_path / "store" / ".items" / "flow").rglob("*.item"))
+    assert len(items) == first.items[1]
+    items[0].write_bytes(items[0].read_bytes()[:100])                    # truncated
+    raw = bytearray(items[1].read_bytes())
+    raw[len(raw) // 2] ^= 0xFF                                           # one flipped byte (the digest)
+    items[1].write_bytes(bytes(raw))
+    items[2].unlink()                                                    # missing
+    shutil.rmtree(store.path_for("flow", first.key))
+    again = run_batch([img], cfg).results[str(img)]["flow"]
+    assert again.status == "computed" and again.items == (first.items[1] - 3, first.items[1])
+    _same_artifact(store.load("flow", again.key), reference)
+    assert all(store.load_item("flow", p.stem) is not None for p in items[:3])   # written again
+
+
+def test_stored_paths_are_not_reused_under_another_iteration_count(tmp_path, compose_cfg):
+    """The max_vertices guard lowers the iterations of every path: paths flowed under it are keyed
+    apart; a max_vertices that does not bind changes nothing a path depends on."""
+    from pipeline.store import ArtifactStore
+
+    img = _example(tmp_path / "in")
+    store = f"store.path={tmp_path / 'store'}"
+    total = run_batch([img], compose_cfg(store, "runtime.cluster=sync", "runtime.until=flow")
+                      ).results[str(img)]["flow"].items[1]
+    loose = run_batch([img], compose_cfg(store, "runtime.cluster=sync", "runtime.until=flow",
+                                         "flow.max_vertices=1000000")).results[str(img)]["flow"]
+    assert loose.status == "computed" and loose.items == (total, total)
+    tight = compose_cfg(store, "runtime.cluster=sync", "runtime.until=flow", "flow.max_vertices=500")
+    guarded = run_batch([img], tight).results[str(img)]["flow"]
+    assert guarded.warnings and guarded.items == (0, total)
+    fresh = run_batch([img], compose_cfg(f"store.path={tmp_path / 'fresh'}", "runtime.cluster=sync",
+                                         "runtime.until=flow", "flow.max_vertices=500")).results[str(img)]["flow"]
+    _same_artifact(ArtifactStore(tmp_path / "store").load("flow", guarded.key),
+                   ArtifactStore(tmp_path / "fresh").load("flow", fresh.key))
