@@ -29,6 +29,7 @@ def work(tmp_path_factory):
     work = tmp_path_factory.mktemp("page")
     r = run_cli("runtime.cluster=sync", cwd=work)
     assert r.returncode == 0, r.stderr[-2000:]
+    assert "reused from earlier runs" not in r.stderr   # a first run reuses nothing and says nothing
     return work
 
 
@@ -89,6 +90,9 @@ def test_edits_beside_the_input_are_picked_up_and_rerun_only_topology_on(work):
     assert r.returncode == 0, r.stderr
     assert f"keypoint edits: {edits} for {img} (found beside the input)" in r.stderr
     assert _written_after(work, img, t0) == RERUN
+    # the flow reused the paths the edit did not touch, and says so
+    reused = re.search(r"flow: (\d+) of (\d+) paths reused from earlier runs", r.stderr)
+    assert reused and 0 < int(reused.group(1)) < int(reused.group(2)), r.stderr[-1500:]
     ends = _curve_ends(work / "cli" / "out" / "polyvec-example.json")
     assert np.hypot(*(ends - [40.0, 150.0]).T).min() < 1.0, "no curve ends at the added junction"
     before = _curve_ends(work / "out" / "polyvec-example.json")
