@@ -10,19 +10,19 @@ Output (data of the artifact; the engine writes the files):
 * ``svg`` — one ``<path>`` per selected curve (polyline ``M … L …``), black stroke, no fill; stroke
   width ``stroke_width`` px, or each curve's mean stroke width from the graph (topology path
   ``widths``) when ``widths_from_graph`` is set;
-* ``curves`` — ``{"id", "points", "end_types", "end_keypoints", "parts", "width"}`` per curve, in
+* ``curves`` — ``{"id", "points", "end_types", "end_keypoints", "parts", "width", "corners"}`` per curve, in
   selection order (joined curves last);
 * ``bezier_svg`` (when ``bezier``) — the same curves as piecewise cubic Béziers fitted within
   ``bezier_tolerance`` px (Schneider's algorithm, Graphics Gems 1990: chord-length parameters,
   least-squares control points for fixed end tangents, Newton re-parametrisation, split at the point
   of largest error).  The fit keeps the curve's ends exactly, and its pieces join with a common
-  tangent (only keypoints are corners, and they are the curves' ends).
+  tangent, except at the curve's ``corners`` (fitted piece by piece between them).
 
 The authors export raw polylines only (no Bézier fitting); this is an addition.
 
-Four clean-ups of the selected curves, each a choice beyond the paper (the authors export the
+Five clean-ups of the selected curves, each a choice beyond the paper (the authors export the
 selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
-unchanged by all four (a curve passing a point counts twice, like two ends).
+unchanged by the first four (a curve passing a point counts twice, like two ends).
 
 * **Joining continuations** (``join``).  The selection returns curves that end at every key vertex
   they meet, so a stroke crossing another or running on past a junction keypoint comes out as two
@@ -54,6 +54,12 @@ unchanged by all four (a curve passing a point counts twice, like two ends).
   and ``max(max_px, max_widths·w)`` and the new tip keeps ``clearance`` × its length from every other
   curve (:func:`extend_overshoots`; a plain T gives ≈ 0, a Y's gap fails the clearance).
 
+* **Strokes through their corners** (``corners``).  Last, the two curves that meet at a sharp-corner
+  keypoint (exactly two ends there) become one curve with a corner vertex (``corners`` in the curves
+  JSON; the Bézier fit keeps it sharp), as an artist draws a zigzag: one path, not a path per leg.
+  Why: a stroke crossing itself is then one curve, not two curves crossing — a junction the
+  drawing does not have (:func:`join_at_corners`).
+
 Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
 cutting them moves the false junction to where the curves part, which the ground truth rarely marks.
 """
@@ -69,10 +75,11 @@ from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.export.bezier import fit_cubic_beziers
-from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
+from stages.export.joins import (attach_spurs, collapse_short_links, extend_overshoots, join_at_corners,
+                                 join_continuations)
 from stages.geometry import polyline_length
 
-STAGE_VERSION = "4"  # 4: no curve shorter than min_length_px
+STAGE_VERSION = "5"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners
 
 
 @dataclass
@@ -121,6 +128,13 @@ class OvershootConfig:
 
 
 @dataclass
+class CornersConfig:
+    """``export.corners``: join the two curves meeting at a sharp-corner keypoint into one."""
+
+    enabled: bool
+
+
+@dataclass
 class ExportConfig:
     """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
@@ -135,6 +149,7 @@ class ExportConfig:
     join: JoinConfig
     spurs: SpursConfig
     overshoot: OvershootConfig
+    corners: CornersConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
@@ -170,6 +185,31 @@ def _polyline_d(points: np.ndarray, precision: int) -> str:
 def _bezier_d(pieces: list[np.ndarray], precision: int) -> str:
     f = lambda p: f"{_fmt(p[0], precision)} {_fmt(p[1], precision)}"  # noqa: E731
     return "M " + f(pieces[0][0]) + "".join(" C " + " ".join(f(q) for q in c[1:]) for c in pieces)
+
+
+def fit_with_corners(points: np.ndarray, corners: list[int], tolerance: float) -> list[np.ndarray]:
+    """Cubic Bézier pieces of a polyline, fitted separately between its corner vertices.
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        (n, 2) polyline.
+    corners : list of int
+        Indices of interior vertices where the curve turns sharply (see
+        :func:`stages.export.joins.join_at_corners`); the fit keeps them as corners.
+    tolerance : float
+        As :func:`stages.export.bezier.fit_cubic_beziers`.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        (4, 2) control points per piece, in order, the pieces of consecutive spans joined at the corners.
+    """
+    cuts = [0] + sorted(i for i in set(corners) if 0 < i < len(points) - 1) + [len(points) - 1]
+    pieces: list[np.ndarray] = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        pieces += fit_cubic_beziers(points[a:b + 1], tolerance)
+    return pieces
 
 
 def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportConfig) -> str:
@@ -269,15 +309,18 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = extend_overshoots(curves, np.asarray(mask, bool), params.join.tangent_px, params.overshoot.min_px,
                                    params.overshoot.min_widths, params.overshoot.max_px,
                                    params.overshoot.max_widths, params.overshoot.clearance)
+    if tidy and params.corners.enabled:
+        curves = join_at_corners(curves)
     # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
     # one point: `M x y L x y`), and has no tangent for the Bézier fit.
-    curves = [c for c in curves if polyline_length(c["points"]) >= params.min_length_px]
+    curves = [dict(c, corners=list(c.get("corners", []))) for c in curves
+              if polyline_length(c["points"]) >= params.min_length_px]
     for c in curves:
-        pts = c["points"]
+        pts = np.asarray(c["points"], np.float64)
         c["points"] = pts.tolist()
         ds.append(_polyline_d(pts, params.precision))
         if params.bezier:
-            bds.append(_bezier_d(fit_cubic_beziers(pts, params.bezier_tolerance), params.precision))
+            bds.append(_bezier_d(fit_with_corners(pts, c["corners"], params.bezier_tolerance), params.precision))
     data = {"svg": svg_document(width, height, curves, ds, params), "curves": curves}
     if params.bezier:
         data["bezier_svg"] = svg_document(width, height, curves, bds, params)
