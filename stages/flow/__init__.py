@@ -109,7 +109,7 @@ from stages.flow.kernel import _flow_kernel, _pack_field, bilinear_with_gradient
 from stages.flow.paths import prepare_paths
 from stages.geometry import polyline_length
 
-STAGE_VERSION = "2"
+STAGE_VERSION = "3"  # 3: each path prepared on its own arc length (last bits; per-path reuse)
 
 @dataclass
 class BarrierConfig:
