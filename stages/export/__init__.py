@@ -75,8 +75,8 @@ from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.export.bezier import fit_cubic_beziers
-from stages.export.joins import (attach_spurs, collapse_short_links, extend_overshoots, join_at_corners,
-                                 join_continuations)
+from stages.export.corners import join_at_corners
+from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
 
 STAGE_VERSION = "5"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners
@@ -196,7 +196,7 @@ def fit_with_corners(points: np.ndarray, corners: list[int], tolerance: float) -
         (n, 2) polyline.
     corners : list of int
         Indices of interior vertices where the curve turns sharply (see
-        :func:`stages.export.joins.join_at_corners`); the fit keeps them as corners.
+        :func:`stages.export.corners.join_at_corners`); the fit keeps them as corners.
     tolerance : float
         As :func:`stages.export.bezier.fit_cubic_beziers`.
 
