@@ -91,6 +91,21 @@ def test_sparse_drawing_runs_through_prep(tmp_path, cli):
 
 
 @pytest.mark.slow
+def test_a_cached_run_does_not_import_torch(tmp_path, cli, monkeypatch):
+    """A re-run whose keypoints are cached never needs torch (about 1.5 s of start-up; issue 14)."""
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    first = cli("input=vee.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    monkeypatch.setenv("PYTHONPROFILEIMPORTTIME", "1")       # python lists every module it imports
+    again = cli("input=vee.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr[-2000:]
+    imported = {line.rsplit("|", 1)[-1].strip() for line in again.stderr.splitlines()
+                if line.startswith("import time:")}
+    assert "pipeline.schema" in imported                      # the listing is there
+    assert "torch" not in imported and "stages.keypoints.network" not in imported
+
+
+@pytest.mark.slow
 def test_export_bezier_true_as_the_readme_spells_it(tmp_path, cli):
     """`export.bezier=true` (README) writes the Bézier SVG beside the polyline one."""
     (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())

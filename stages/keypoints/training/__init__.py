@@ -32,11 +32,22 @@ perceptron of :mod:`stages.keypoints.valence` (settings ``train.type_classifier`
 keypoints of generated drawings run through the real prep and keypoints stages.
 """
 
-from stages.keypoints.training.data import (category_split, draw_vector, prepare_sample, render_vector,
-                                            validation_set, vector_pool, vector_samples, vector_split)
-from stages.keypoints.training.loop import evaluate, export_weights, train, train_class_branch
-from stages.keypoints.training.type_classifier import fit_type_classifier, train_type_classifier, type_classifier_data
+# The entry points load lazily (PEP 562): the configs import ``training.config`` at every start-up,
+# and the training modules import torch (about 1.5 s), which a plain vectorisation never needs.
+_EXPORTS = {
+    "stages.keypoints.training.data": ("category_split", "draw_vector", "prepare_sample", "render_vector",
+                                       "validation_set", "vector_pool", "vector_samples", "vector_split"),
+    "stages.keypoints.training.loop": ("evaluate", "export_weights", "train", "train_class_branch"),
+    "stages.keypoints.training.type_classifier": ("fit_type_classifier", "train_type_classifier",
+                                                  "type_classifier_data"),
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
 
-__all__ = ["category_split", "draw_vector", "evaluate", "export_weights", "fit_type_classifier", "prepare_sample",
-           "render_vector", "train", "train_class_branch", "train_type_classifier", "type_classifier_data",
-           "validation_set", "vector_pool", "vector_samples", "vector_split"]
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        import importlib
+
+        return getattr(importlib.import_module(_WHERE[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from stages.keypoints.network import NetConfig
+from stages.keypoints.net_config import NetConfig
 from stages.keypoints.training.generator import GeneratorConfig
 from stages.keypoints.training.labels import LabelRules
 
