@@ -76,10 +76,8 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   constant, sampling-dependent length penalty (S ≈ 2.5 along a curve in its tube): dropped.
 * **All paths in one compiled call.**  The paths are independent blocks of one block-tridiagonal
   system (fixed endpoints decouple them); one numba kernel runs the whole iteration loop of every
-  block, blocks on threads when numba may use several (the kernel is ``nogil``; longest first, one
-  block per task; not ``prange``: ``parallel=True`` doubled the first run's compile time, and the
-  engine pins numba to one thread per task anyway), edge terms, energy and the Thomas forward sweep
-  fused in one pass — a banded solver on the stacked system alone costs more than the run.
+  block, blocks in parallel (``prange``, longest first), edge terms, energy and the Thomas forward
+  sweep fused in one pass — a banded solver on the stacked system alone costs more than the run.
   The field is stored with a one-pixel zero border (no bounds tests in the lookup), ∂(q g)/∂t is
   formed from conj(A), an undone step swaps two buffers.  Fastmath flags ``contract, arcp, nsz,
   afn`` only: ``reassoc`` makes results differ from run to run, and ``nnan``/``ninf`` would remove
@@ -99,7 +97,6 @@ References
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 
 import numba
@@ -233,21 +230,15 @@ def polyvector_flow(c0: np.ndarray, c2: np.ndarray, xys: list[np.ndarray], width
     nrej = np.zeros(npath, np.int64)
     # Longest paths first, handed out one at a time: the blocks differ in size by 100×.
     order = np.argsort(-np.diff(batch.zoff), kind="stable")
-    fld = _pack_field(c0, c2)
-
-    def flow(blocks: np.ndarray) -> None:
-        _flow_kernel(blocks, batch.z, batch.zoff, batch.centres, batch.sigma, batch.rho2, batch.dist, batch.coff,
-                     batch.home, batch.window, fld, params.iterations, params.dt, params.lam,
+    old_chunk = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(1)
+    try:
+        _flow_kernel(order, batch.z, batch.zoff, batch.centres, batch.sigma, batch.rho2, batch.dist, batch.coff,
+                     batch.home, batch.window, _pack_field(c0, c2), params.iterations, params.dt, params.lam,
                      params.eps, params.resample_factor, params.barrier.cutoff ** 2, params.step_scale.d0,
                      params.step_scale.min, params.step_scale.max, e0, e1, nres, nrej, failed)
-
-    threads = min(numba.get_num_threads(), npath)
-    if threads <= 1:
-        flow(order)
-    else:
-        # the kernel releases the GIL; one block per task, handed out in `order`
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(flow, [order[i:i + 1] for i in range(npath)]))
+    finally:
+        numba.set_parallel_chunksize(old_chunk)
     curves = [np.stack([batch.z[a:b].real, batch.z[a:b].imag], axis=1)
               for a, b in zip(batch.zoff[:-1], batch.zoff[1:])]
     return FlowResult(curves, e1, e0, nres, failed, nrej)

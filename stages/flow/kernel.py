@@ -263,16 +263,12 @@ def _resample(z, n, tmp, home, home_tmp):
         home[k] = home_tmp[k]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FM)
+@numba.njit(cache=True, parallel=True, error_model="numpy", fastmath=_FM)
 def _flow_kernel(order, z, zoff, cen, sig, rho2, dist, coff, home, window, fld, iterations, dt, lam, eps,
                  resample_factor, cut2, d0, smin, smax, e_init, e_final, n_resample, n_reject, failed):
-    """Run the PolyVector flow on the path blocks ``order`` lists, one after the other (in place on
-    ``z`` and ``home``).
-
-    Sequential and ``nogil``: :func:`stages.flow.polyvector_flow` runs blocks on threads when numba
-    may use several.  Not ``parallel=True``: that doubled the first run's compile (stages/DECISIONS.md).
-    """
-    for i in range(order.shape[0]):
+    """Run the PolyVector flow on every path block (in place on ``z`` and ``home``)."""
+    npath = zoff.shape[0] - 1
+    for i in numba.prange(npath):
         p = order[i]
         z0i = zoff[p]
         n = zoff[p + 1] - z0i

@@ -305,32 +305,6 @@ def test_a_subset_of_the_paths_flows_bit_identically_to_all_of_them():
         assert pieced.arrays[name].dtype == a.dtype and pieced.arrays[name].tobytes() == a.tobytes()
 
 
-def test_flowing_on_threads_gives_the_one_thread_result():
-    """The kernel is sequential and nogil; with several numba threads the blocks run on a thread
-    pool, one block per task: the result must be the one-thread result, to the last bit."""
-    import numba
-
-    d = synthetic.cross()
-    c0, c2, _ = analytic_field(d)
-    paths = [noisy_path(np.asarray(d.strokes[k % 2][0], float), np.asarray(d.strokes[k % 2][1], float),
-                        n=12 + 7 * k, noise=0.3, seed=k)[0] for k in range(6)]
-    widths = [np.full(len(xy), 2.0) for xy in paths]
-    interest = [np.linspace(0.5, 45.0, len(xy)) for xy in paths]
-    p = params(iterations=80)
-    n = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = flow.polyvector_flow(c0, c2, paths, widths, interest, p)
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = flow.polyvector_flow(c0, c2, paths, widths, interest, p)
-    finally:
-        numba.set_num_threads(n)
-    for a, b in zip(one.curves, many.curves):
-        np.testing.assert_array_equal(a, b)
-    for name in ("energies", "energies_initial", "resamples", "rejected", "failed"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
-
-
 def test_degenerate_paths_are_returned_unchanged():
     c0 = np.zeros((20, 20), complex)
     res = flow.polyvector_flow(c0, c0, [np.array([[3.0, 4.0]]), np.array([[3.0, 4.0], [3.0, 4.0]]),
