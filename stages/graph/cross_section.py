@@ -72,8 +72,8 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g
     """
     H, W = band.shape
     ncr = 0
-    x0 = sx[g]
-    y0 = sy[g]
+    x0 = np.float64(sx[g])   # float64 from the start: a float32 start compiles coeffs_at twice
+    y0 = np.float64(sy[g])
     i_seed = g - c_start[k]
     # the seed crossing itself
     cr_curve[0] = k
