@@ -72,8 +72,8 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g
     """
     H, W = band.shape
     ncr = 0
-    x0 = sx[g]
-    y0 = sy[g]
+    x0 = np.float64(sx[g])   # float64 from the start: a float32 start compiles coeffs_at twice
+    y0 = np.float64(sy[g])
     i_seed = g - c_start[k]
     # the seed crossing itself
     cr_curve[0] = k
@@ -242,8 +242,9 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
                 j = min(i + half, L - 1)
             g = st + j
             made = False
-            x0 = sx[g]
-            y0 = sy[g]
+            # float64 like every other call of coeffs_at (it widens at once anyway): one compile, not two
+            x0 = np.float64(sx[g])
+            y0 = np.float64(sy[g])
             if not singular[int(y0), int(x0)]:
                 a0, a2 = coeffs_at(c0, c2, x0, y0)
                 u, v = quartic_roots(a0, a2)
@@ -289,7 +290,9 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
                         if nv >= vcap:
                             vcap *= 2
                             nxy = np.empty((vcap, 2), np.float64)
-                            nxy[:nv] = v_xy[:nv]
+                            for q in range(nv):
+                                nxy[q, 0] = v_xy[q, 0]
+                                nxy[q, 1] = v_xy[q, 1]
                             v_xy = nxy
                             v_width = _grow_f(v_width, vcap)
                             v_root = _grow_f(v_root, vcap)

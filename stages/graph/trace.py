@@ -119,8 +119,11 @@ def choose_direction(u, v, d, tie):
 
 @njit(cache=True)
 def _grow_f(a, n):
+    # an element loop, not ``b[:len(a)] = a``: a slice assignment also compiles numba's shape-mismatch
+    # error message (string formatting, ~3 s on the first run; stages/DECISIONS.md)
     b = np.empty(n, a.dtype)
-    b[:len(a)] = a
+    for q in range(len(a)):
+        b[q] = a[q]
     return b
 
 
@@ -188,12 +191,14 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
     sc = np.empty(cap, np.int32)
     si = np.empty(cap, np.int32)
     nxt = np.empty(cap, np.int32)
-    n = 0
-    ccap = 1024
+    # counters start as int64, not as the literal 0: a literal reaches the helpers' signatures and
+    # compiles each of them once more (stages/DECISIONS.md)
+    n = np.int64(0)
+    ccap = np.int64(1024)
     c_start = np.empty(ccap, np.int64)
     c_len = np.empty(ccap, np.int64)
     c_end = np.empty((ccap, 2), np.int8)
-    nc = 0
+    nc = np.int64(0)
     tmp = np.empty((0, 4), np.float32)
     for i in range(H):
         for j in range(W):
@@ -202,7 +207,7 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                 continue
             x0 = j + 0.5
             y0 = i + 0.5
-            if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, x0, y0, d0.real, d0.imag, -1, 0, lag,
+            if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, x0, y0, d0.real, d0.imag, np.int64(-1), np.int64(0), lag,
                        merge_d2, merge_cos):
                 continue
             cid = nc
@@ -308,7 +313,9 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                 c_start = _grow_f(c_start, ccap)
                 c_len = _grow_f(c_len, ccap)
                 ce = np.empty((ccap, 2), np.int8)
-                ce[:nc] = c_end[:nc]
+                for q in range(nc):
+                    ce[q, 0] = c_end[q, 0]
+                    ce[q, 1] = c_end[q, 1]
                 c_end = ce
             c_start[nc] = base
             c_len[nc] = total
