@@ -91,3 +91,15 @@ def test_docs_say_what_the_code_does():
     assert "(scipy) with a Jacobi" not in field.__doc__ and "_conjugate_gradient" in field.__doc__
     assert "same 75 % share" not in prep.__doc__
     assert "never read files" not in stages.__doc__
+
+
+def test_the_readme_configuration_examples_compose(compose_cfg):
+    """Every override the README's "Configuration groups" table shows is a key of the config."""
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    table = text[text.index("## Configuration groups"):text.index("\n## ", text.index("## Configuration groups") + 1)]
+    examples = [o for cell in re.findall(r"`([^`]*=[^`]*)`", table) for o in cell.split()]
+    assert "export.corners.enabled=false" in examples and len(examples) >= 10
+    for override in examples:
+        compose_cfg(override)             # an unknown key fails here, as it would on the command line
