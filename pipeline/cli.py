@@ -212,10 +212,11 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
     for stage in batch.stages:
         # per-item stages: how much of the work earlier runs had done (one line per stage, not per image)
         done = [per[stage].items for per in batch.results.values() if stage in per and per[stage].items]
-        if sum(d[0] for d in done):   # a first run reuses nothing: no line
+        reused, total = sum(d[0] for d in done), sum(d[1] for d in done)
+        if reused:   # a first run reuses nothing: no line
             name = getattr(BY_NAME[stage].load(), "ITEM_NAME", "items")
-            console.print(f"{stage}: {sum(d[0] for d in done)} of {sum(d[1] for d in done)} {name} reused "
-                          "from earlier runs", highlight=False, soft_wrap=True)
+            console.print(f"{stage}: {reused} of {total} {name} reused from earlier runs",
+                          highlight=False, soft_wrap=True)
     for image, files in batch.outputs.items():
         console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True)
 

@@ -74,7 +74,7 @@ import numpy as np
 from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
-from stages.export.bezier import fit_cubic_beziers
+from stages.export.bezier import fit_cubic_beziers, fit_with_corners  # noqa: F401 (fit_cubic_beziers: public)
 from stages.export.corners import join_at_corners
 from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
@@ -185,31 +185,6 @@ def _polyline_d(points: np.ndarray, precision: int) -> str:
 def _bezier_d(pieces: list[np.ndarray], precision: int) -> str:
     f = lambda p: f"{_fmt(p[0], precision)} {_fmt(p[1], precision)}"  # noqa: E731
     return "M " + f(pieces[0][0]) + "".join(" C " + " ".join(f(q) for q in c[1:]) for c in pieces)
-
-
-def fit_with_corners(points: np.ndarray, corners: list[int], tolerance: float) -> list[np.ndarray]:
-    """Cubic Bézier pieces of a polyline, fitted separately between its corner vertices.
-
-    Parameters
-    ----------
-    points : numpy.ndarray
-        (n, 2) polyline.
-    corners : list of int
-        Indices of interior vertices where the curve turns sharply (see
-        :func:`stages.export.corners.join_at_corners`); the fit keeps them as corners.
-    tolerance : float
-        As :func:`stages.export.bezier.fit_cubic_beziers`.
-
-    Returns
-    -------
-    list of numpy.ndarray
-        (4, 2) control points per piece, in order, the pieces of consecutive spans joined at the corners.
-    """
-    cuts = [0] + sorted(i for i in set(corners) if 0 < i < len(points) - 1) + [len(points) - 1]
-    pieces: list[np.ndarray] = []
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        pieces += fit_cubic_beziers(points[a:b + 1], tolerance)
-    return pieces
 
 
 def svg_document(width: int, height: int, curves: list[dict], ds: list[str], params: ExportConfig) -> str:

@@ -120,3 +120,26 @@ def fit_cubic_beziers(points: np.ndarray, tolerance: float, max_depth: int = 32)
     return out
 
 
+def fit_with_corners(points: np.ndarray, corners: list[int], tolerance: float) -> list[np.ndarray]:
+    """Cubic Bézier pieces of a polyline, fitted separately between its corner vertices.
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        (n, 2) polyline.
+    corners : list of int
+        Indices of interior vertices where the curve turns sharply (see
+        :func:`stages.export.corners.join_at_corners`); the fit keeps them as corners.
+    tolerance : float
+        As :func:`fit_cubic_beziers`.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        (4, 2) control points per piece, in order, the pieces of consecutive spans joined at the corners.
+    """
+    cuts = [0] + sorted(i for i in set(corners) if 0 < i < len(points) - 1) + [len(points) - 1]
+    pieces: list[np.ndarray] = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        pieces += fit_cubic_beziers(points[a:b + 1], tolerance)
+    return pieces

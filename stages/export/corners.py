@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry import polyline_length
+from stages.export.joins import mean_width
 
 CORNER = 5
 
@@ -45,28 +45,24 @@ def join_at_corners(curves: list[dict]) -> list[dict]:
         if len(ends) == 2 and ends[0][0] != ends[1][0]:
             link[ends[0]], link[ends[1]] = ends[1], ends[0]
 
-    def chain_from(n: int, e: int, seen: set) -> list[tuple[int, bool]]:
-        """Curves from curve n leaving by end e: (curve, reversed) in order, stopping at a repeat."""
-        out, cur, leave = [], n, e
-        while True:
-            seen.add(cur)
-            out.append((cur, leave == 0))          # leaving by its start: walked backwards
-            nxt = link.get((cur, leave))
-            if nxt is None or nxt[0] in seen:
-                return out
-            cur, leave = nxt[0], 1 - nxt[1]
+    def walk(n: int, leave: int) -> list[tuple[int, int]]:
+        """Curves linked through corners from curve n leaving by end ``leave``: (curve, end it is left by),
+        stopping at a free end or where the chain comes round to a curve already walked."""
+        out, seen = [(n, leave)], {n}
+        while (nxt := link.get(out[-1])) is not None and nxt[0] not in seen:
+            seen.add(nxt[0])
+            out.append((nxt[0], 1 - nxt[1]))
+        return out
 
     done: set = set()
     result: list[dict] = []
     for n in range(len(curves)):
         if n in done:
             continue
-        # Walk back to a free end of the chain (or once round a closed chain), then forward.
-        start, e, seen = n, 0, {n}
-        while (prev := link.get((start, e))) is not None and prev[0] not in seen:
-            start, e = prev[0], 1 - prev[1]
-            seen.add(start)
-        pieces = chain_from(start, 1 - e, set())
+        # Walk back to a free end of the chain (or once round a closed chain, which opens it there),
+        # then forward from there: the pieces in order, each reversed when it is left by its start.
+        start, left_by = walk(n, 0)[-1]
+        pieces = [(k, leave == 0) for k, leave in walk(start, 1 - left_by)]
         done.update(k for k, _ in pieces)
         if len(pieces) == 1:
             result.append(dict(curves[n], corners=list(curves[n].get("corners", []))))
@@ -92,9 +88,7 @@ def join_at_corners(curves: list[dict]) -> list[dict]:
         joined = dict(first, points=np.concatenate(pts), corners=sorted(set(corners)),
                       end_types=[first["end_types"][e0], last["end_types"][e1]],
                       end_keypoints=[first["end_keypoints"][e0], last["end_keypoints"][e1]],
-                      parts=[q for k, _ in pieces for q in curves[k]["parts"]])
-        w = [(curves[k].get("width"), polyline_length(curves[k]["points"])) for k, _ in pieces]
-        if all(x is not None for x, _ in w):
-            joined["width"] = float(sum(x * ln for x, ln in w) / max(sum(ln for _, ln in w), 1e-12))
+                      parts=[q for k, _ in pieces for q in curves[k]["parts"]],
+                      width=mean_width([curves[k] for k, _ in pieces]))
         result.append(joined)
     return result

@@ -152,7 +152,7 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
         ta = [a["end_types"][1 - ei], b["end_types"][1 - ej]]
         ka = [a["end_keypoints"][1 - ei], b["end_keypoints"][1 - ej]]
         alive[counter] = {**a, "points": np.concatenate([pa, pb[1:]]), "end_types": ta, "end_keypoints": ka,
-                          "parts": list(a["parts"]) + list(b["parts"]), "width": _mean_width(a, b)}
+                          "parts": list(a["parts"]) + list(b["parts"]), "width": mean_width([a, b])}
         for e in (0, 1):
             touched.add(add_end(counter, e))
         counter += 1
@@ -161,12 +161,13 @@ def join_continuations(curves: list[dict], max_turn_deg: float, tangent_px: floa
     return [alive[n] for n in sorted(alive)]
 
 
-def _mean_width(a: dict, b: dict):
-    wa, wb = a.get("width"), b.get("width")
-    if wa is None or wb is None:
-        return wa if wb is None else wb
-    la, lb = polyline_length(a["points"]), polyline_length(b["points"])
-    return float((wa * la + wb * lb) / max(la + lb, 1e-12))
+def mean_width(pieces: list[dict]):
+    """Stroke width of curves joined into one: their widths weighted by length (unknown ones left out)."""
+    known = [c for c in pieces if c.get("width") is not None]
+    if len(known) < 2:
+        return known[0]["width"] if known else None
+    lengths = [polyline_length(c["points"]) for c in known]
+    return float(sum(c["width"] * ln for c, ln in zip(known, lengths)) / max(sum(lengths), 1e-12))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -426,7 +427,7 @@ def attach_spurs(curves: list[dict], spur_px: float, spur_widths: float, max_tur
                              end_keypoints=[other["end_keypoints"][0], k])]
         joined = {**spur, "points": np.concatenate([sp, op[1:]]), "end_types": [s_type, o_type],
                   "end_keypoints": [s_kp, o_kp], "parts": list(spur["parts"]) + list(other["parts"]),
-                  "width": _mean_width(spur, other)}
+                  "width": mean_width([spur, other])}
         # What the edit can change for other curves: ends near the vertices it moved between curves
         # (shared synthetic ends, curves passing by) and the counts at the keypoints it touched.
         moved = np.vstack([spur["points"], other["points"], p[None]])
