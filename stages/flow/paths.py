@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from stages.artifact import pack_ragged
+from stages.geometry import arc_length
 
 if TYPE_CHECKING:
     from stages.flow import FlowConfig
@@ -83,9 +84,7 @@ def _prepare_one(xy: np.ndarray, w: np.ndarray, dd: np.ndarray, params: FlowConf
         vertex: local index of the nearest centre in arc length to the midpoint of the edge ending there).
     """
     n = len(xy)
-    s = np.zeros(n)
-    if n > 1:
-        np.cumsum(np.hypot(xy[1:, 0] - xy[:-1, 0], xy[1:, 1] - xy[:-1, 1]), out=s[1:])
+    s = arc_length(xy)
     total = s[-1]
     # Repeated points would give repeated knots; a sub-nanometre ramp keeps them increasing.
     ramp = 1e-9 * np.arange(n)
