@@ -1,0 +1,129 @@
+"""Benchmark: every row of issue #14's speed table, and the per-stage curve at 1×, 2×, 4× (not a test).
+
+Each row is the real command (``polyvec IMAGE output=… store.path=…``) in a fresh process, timed from
+outside with ``/usr/bin/time`` (wall seconds, peak RSS of the main process); stage seconds come from
+the manifests the run wrote. The issue measured the 2019 paper's 500×714 scanned penguin, which is not
+in ``../shared/data``; the stand-in is the 500×753 scanned elephant of ``../shared/data/drawings``.
+
+Rows:
+
+- fresh install, first image: an empty numba cache (``NUMBA_CACHE_DIR``) and an empty store;
+- empty store, kernels compiled: the default run (``runtime.cluster=auto``) and ``runtime.cluster=sync``;
+- every artifact a hit; a λ re-run (``flow.lam=0.5``: flow → select → export);
+- the drawing upscaled 2× and 4× (bicubic), with per-stage seconds and peak MB (the linear-cost curve);
+- 8 drawings at 512² (the 13 drawings' first 8, fitted into 512×512 on white) with 1 and 2 workers of
+  a local cluster (``runtime.cluster=local``), and the speed-up.
+
+Usage::
+
+    python tests/benchmarks/bench_speed.py [--image PNG] [--skip-batch] [--skip-scale]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED = REPO.parent / "shared" / "data" / "drawings"
+STAND_IN = SHARED / "scanned" / "elephant.png"
+STAGES = ("prep", "keypoints", "keypoint_edits", "field", "graph", "topology", "flow", "select", "export")
+
+
+def polyvec(inputs: list[str], out: str, store: str, *overrides: str, env: dict | None = None) -> dict:
+    """Run the polyvec command once; wall seconds, peak MB and the stages it computed (from manifests)."""
+    exe = str(Path(sys.executable).with_name("polyvec"))
+    started = time.time()
+    cmd = ["/usr/bin/time", "-f", "TIME %e %M", exe, *inputs, f"output={out}", f"store.path={store}", *overrides]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=env or dict(os.environ))
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    wall, peak_kb = proc.stderr.strip().splitlines()[-1].split()[1:3]
+    stages: dict[str, list[float]] = {}
+    for manifest in Path(store).glob("*/*/*/manifest.json"):
+        m = json.loads(manifest.read_text())
+        if m.get("written_at", 0) >= started:
+            stages.setdefault(m["stage"], []).append(m["duration_s"])
+    return {"wall_s": float(wall), "peak_mb": int(peak_kb) / 1024,
+            "stages": {s: sum(v) for s, v in stages.items()}}
+
+
+def scaled(image: Path, factor: int, folder: Path) -> Path:
+    """The drawing upscaled by ``factor`` (bicubic), written as PNG."""
+    from PIL import Image
+
+    im = Image.open(image)
+    path = folder / f"{image.stem}_x{factor}.png"
+    im.resize((im.width * factor, im.height * factor), Image.BICUBIC).save(path)
+    return path
+
+
+def fitted_512(images: list[Path], folder: Path) -> list[str]:
+    """Each drawing fitted into a 512×512 white canvas (aspect kept)."""
+    from PIL import Image
+
+    paths = []
+    for i, image in enumerate(images):
+        im = Image.open(image).convert("L")
+        s = 512 / max(im.size)
+        im = im.resize((round(im.width * s), round(im.height * s)), Image.BICUBIC)
+        canvas = Image.new("L", (512, 512), 255)
+        canvas.paste(im, ((512 - im.width) // 2, (512 - im.height) // 2))
+        path = folder / f"d{i}_{image.parent.name}_{image.stem}.png"
+        canvas.save(path)
+        paths.append(str(path))
+    return paths
+
+
+def stage_line(r: dict) -> str:
+    return "  ".join(f"{s} {r['stages'][s]:.2f}" for s in STAGES if s in r["stages"])
+
+
+def row(name: str, r: dict) -> None:
+    print(f"{name:<58}{r['wall_s']:>8.1f} s {r['peak_mb']:>7.0f} MB   {stage_line(r)}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--image", type=Path, default=STAND_IN)
+    ap.add_argument("--skip-batch", action="store_true")
+    ap.add_argument("--skip-scale", action="store_true")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "numba-cache"))
+        img, out = str(args.image), str(tmp / "out")
+        h, w = __import__("PIL.Image", fromlist=["Image"]).open(args.image).size[::-1]
+        print(f"drawing: {args.image} ({w}×{h})")
+        print(f"{'case':<58}{'wall':>10} {'peak':>10}   stage seconds (manifests)")
+        row("fresh numba cache, empty store, first image", polyvec([img], out, str(tmp / "s0"), env=env))
+        row("empty store, kernels compiled, default run", polyvec([img], out, str(tmp / "s1"), env=env))
+        row("same, runtime.cluster=sync", polyvec([img], out, str(tmp / "s2"), "runtime.cluster=sync", env=env))
+        row("again, every artifact a hit", polyvec([img], out, str(tmp / "s1"), env=env))
+        row("λ re-run (flow.lam=0.5: flow → select → export)",
+            polyvec([img], out, str(tmp / "s1"), "flow.lam=0.5", env=env))
+        if not args.skip_scale:
+            for factor in (2, 4):
+                big = scaled(args.image, factor, tmp)
+                row(f"×{factor} ({w * factor}×{h * factor}), empty store",
+                    polyvec([str(big)], out, str(tmp / f"sx{factor}"), env=env))
+        if not args.skip_batch:
+            drawings = sorted(SHARED.glob("*/*.png"))[:8]
+            folder = tmp / "batch"
+            folder.mkdir()
+            batch = fitted_512(drawings, folder)
+            one = polyvec([str(folder)], out, str(tmp / "b1"), "runtime.cluster=local", "runtime.workers=1", env=env)
+            two = polyvec([str(folder)], out, str(tmp / "b2"), "runtime.cluster=local", "runtime.workers=2", env=env)
+            row("8 drawings 512², local cluster, 1 worker", one)
+            row("8 drawings 512², local cluster, 2 workers", two)
+            print(f"2 workers vs 1 worker: {one['wall_s'] / two['wall_s']:.2f}×")
+
+
+if __name__ == "__main__":
+    main()
