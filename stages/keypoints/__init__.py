@@ -58,7 +58,8 @@ def _file_hash(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()[:10]
 
 
-STAGE_VERSION = "3+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
+# 4: BatchNorms folded into the convolutions at load (heatmaps move by float rounding)
+STAGE_VERSION = "4+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
 
 _MODELS: dict[str, tuple["KeypointNet", str]] = {}
 
@@ -87,7 +88,7 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     """
     import torch
 
-    from stages.keypoints.network import KeypointNet, NetConfig
+    from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms
 
     path = _PACKAGED_NETWORKS.get(weights or "packaged") or Path(weights)
     key = str(path)
@@ -113,6 +114,7 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         name = f"{path.name}@{_file_hash(path)}"
     model.eval()
+    fold_batch_norms(model)
     # Channels-last convolutions run the full network about 30 % faster on one CPU thread (same
     # heatmaps to 1e-5; tests/benchmarks/bench_keypoints.py). Inference only: with bf16 training it
     # gives NaN gradients (train.channels_last).

@@ -19,7 +19,7 @@ from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
 from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
-from stages.keypoints.network import KeypointNet, NetConfig
+from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms
 from stages.keypoints.training.generator import drawing_from_strokes, generate, render_strokes
 from stages.keypoints.training.human_strokes import read_quickdraw_ndjson, read_svg_strokes
 from stages.keypoints.training.labels import label_keypoints
@@ -209,7 +209,7 @@ def test_run_artifact_contract():
     assert a["types"].dtype == np.int8 and a["scores"].dtype == np.float32
     assert len(a.data["points"]) == len(a["points"])
     assert set(a["types"].tolist()) <= {1, 3, 5}
-    assert STAGE_VERSION.startswith("3+") and a.data["weights"]
+    assert STAGE_VERSION.startswith("4+") and a.data["weights"]
     assert torch.get_num_threads() == 1
     img = render_keypoints(d.grey, a["heatmaps"], a["points"], a["types"])
     assert img.shape == (48, 48, 3) and img.dtype == np.uint8
@@ -240,6 +240,24 @@ def test_weights_load_on_cpu():
     assert next(model.parameters()).device.type == "cpu"
     if PACKAGED_WEIGHTS.is_file():
         assert name.startswith("keypoints.pt@") and name.split("@")[1] in STAGE_VERSION
+
+
+def test_loaded_networks_have_their_batch_norms_folded():
+    # Inference runs the folded network (a third fewer passes over full-resolution tensors); the
+    # heatmaps must be those of the network as trained, up to float rounding.
+    from torch import nn
+
+    model, _ = load_model("packaged")
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in model.modules())
+    ckpt = torch.load(PACKAGED_WEIGHTS, map_location="cpu", weights_only=True)
+    plain = KeypointNet(model.cfg)
+    plain.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
+    plain.eval()
+    x = torch.from_numpy(network_input(synthetic.tee(size=96).grey, 0.5))[None, None]
+    with torch.inference_mode():
+        assert torch.allclose(model(x)[0], plain(x)[0], atol=1e-4)
+    with pytest.raises(ValueError, match="eval mode"):
+        fold_batch_norms(KeypointNet(model.cfg))
 
 
 @pytest.mark.skipif(not PACKAGED_WEIGHTS.is_file(), reason="no shipped weights yet")
