@@ -248,7 +248,9 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
     if "keypoint_edits" in stages:
         announce_edits(images, cfg, console)
-    if kernels_uncompiled(stages):
+    from pipeline import warmup
+
+    if warmup.uncompiled(stages):
         console.print("polyvec: compiling kernels, first run only (about half a minute)", highlight=False)
     PROGRESS.start(len(images), stages[-1] if stages else None)
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
@@ -292,49 +294,6 @@ def announce_edits(images: list[Path], cfg: DictConfig, console) -> None:
             raise UsageError(str(exc)) from None
         how = "keypoint_edits.file" if section.get("file") else "found beside the input"
         console.print(f"keypoint edits: {path} for {image} ({how})", highlight=False, soft_wrap=True)
-
-
-# Modules whose numba kernels are compiled on first use and cached on disk (``@njit(cache=True)``).
-_KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"),
-                   "topology": ("stages/topology/constrained_path.py",), "flow": ("stages/flow/kernel.py",)}
-
-
-def _numba_cache_dir(src: Path) -> tuple[Path, bool]:
-    """Where numba keeps the cache of ``src``'s kernels and whether it is a tree to search.
-
-    numba's locators, in its order: below ``NUMBA_CACHE_DIR`` when set; else the module's
-    ``__pycache__`` when it is writable (a source checkout, an editable or a user-writable install);
-    else its user-wide cache dir (``~/.cache/numba/<folder>_<hash>`` on Linux: a read-only install).
-    """
-    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
-    if cache_dir:
-        return Path(cache_dir), True
-    in_tree = src.parent / "__pycache__"
-    if os.access(in_tree if in_tree.is_dir() else src.parent, os.W_OK):
-        return in_tree, False
-    from numba.core.caching import UserWideCacheLocator
-    from numba.misc.appdirs import AppDirs
-
-    user = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
-    return user / UserWideCacheLocator.get_suitable_cache_subpath(str(src)), False
-
-
-def kernels_uncompiled(stages: list[str]) -> bool:
-    """Whether a stage to run has numba kernels with no on-disk cache yet (the first run compiles them).
-
-    numba keeps its cache index (``<module>.<function>-<line>.py<ver>.nbi``) where
-    :func:`_numba_cache_dir` says.
-    """
-    root = Path(__file__).resolve().parents[1]
-    for stage in stages:
-        for module in _KERNEL_MODULES.get(stage, ()):
-            src = root / module
-            where, tree = _numba_cache_dir(src)
-            pattern = f"{src.stem}.*.nbi"
-            found = where.rglob(pattern) if tree else where.glob(pattern)
-            if next(iter(found), None) is None:
-                return True
-    return False
 
 
 class _Progress:

@@ -459,7 +459,15 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
 
     if pending:
         if cluster_mode(runtime, pending) == "sync":
-            _run_sync(pending, store.url, batch, report)
+            from pipeline import warmup
+
+            # One image in-process leaves a core idle: its graph and flow kernels (first run only)
+            # compile there meanwhile.
+            warmup.start(sorted({t.stage for tasks in pending for t in tasks}))
+            try:
+                _run_sync(pending, store.url, batch, report)
+            finally:
+                warmup.stop()
         else:
             client = get_client(runtime)
             if runtime["scheduler_address"]:
@@ -492,9 +500,12 @@ def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
 
 
 def _run_sync(pending, store_url, batch, report) -> None:
+    from pipeline import warmup
+
     for tasks in pending:
         per = batch.results[tasks[0].image]
         for t in tasks:
+            warmup.wait(t.stage)
             r = execute(t, store_url, *_needed(t, per))
             per[t.stage] = r
             report(r)
