@@ -169,16 +169,20 @@ def _store(url: str) -> ArtifactStore:
     return _STORES[url]
 
 
-def _pin_threads() -> None:
+def _pin_threads(alone: bool = False) -> None:
     """One thread per task for torch and numba (worker processes also get THREAD_ENV at spawn).
 
-    NUMBA_NUM_THREADS is never changed in a running process: numba re-reads its environment when it
-    compiles and refuses a value that differs from the thread pool it already launched.
+    ``alone``: the task is the only one running (in-process): numba's parallel kernels (the flow's
+    paths, whose results do not depend on the thread count) may use every thread of its pool; torch
+    stays at one (the keypoints stage sets its own ``torch_threads``). NUMBA_NUM_THREADS is never
+    changed in a running process: numba re-reads its environment when it compiles and refuses a
+    value that differs from the thread pool it already launched.
     """
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
     if "numba" in sys.modules:
-        sys.modules["numba"].set_num_threads(1)
+        numba = sys.modules["numba"]
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS if alone else 1)
 
 
 # Artifacts recently loaded or written by this process, by (stage, key). They are immutable (a key
@@ -252,8 +256,11 @@ def run_per_item(module, task: Task, store: ArtifactStore, inputs: dict) -> tupl
     return module.assemble(plan, results), (len(keys) - len(missing), len(keys))
 
 
-def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
-    """Run one task in a worker: load inputs, run the stage, store the artifact."""
+def execute(task: Task, store_url: str, *upstream: TaskResult, alone: bool = False) -> TaskResult:
+    """Run one task in a worker: load inputs, run the stage, store the artifact.
+
+    ``alone``: no other task runs beside this one (the in-process scheduler), see :func:`_pin_threads`.
+    """
     from stages.errors import InputError
 
     for up in upstream:
@@ -262,7 +269,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult) -> TaskResult:
     store = _store(store_url)
     if store.exists(task.stage, task.key):
         return TaskResult(task.image, task.stage, task.key, "cached")
-    _pin_threads()
+    _pin_threads(alone)
     t0 = time.perf_counter()
     try:
         spec = BY_NAME[task.stage]
@@ -506,7 +513,7 @@ def _run_sync(pending, store_url, batch, report) -> None:
         per = batch.results[tasks[0].image]
         for t in tasks:
             warmup.wait(t.stage)
-            r = execute(t, store_url, *_needed(t, per))
+            r = execute(t, store_url, *_needed(t, per), alone=True)
             per[t.stage] = r
             report(r)
 

@@ -257,3 +257,23 @@ def test_stored_paths_are_not_reused_under_another_iteration_count(tmp_path, com
                                          "runtime.until=flow", "flow.max_vertices=500")).results[str(img)]["flow"]
     _same_artifact(ArtifactStore(tmp_path / "store").load("flow", guarded.key),
                    ArtifactStore(tmp_path / "fresh").load("flow", fresh.key))
+
+
+def test_an_in_process_run_lets_numba_use_its_pool_and_workers_stay_on_one_thread(tmp_path, compose_cfg,
+                                                                                   monkeypatch):
+    """The flow's paths run in parallel when the task runs alone (their results do not depend on the
+    thread count); a worker beside another keeps one thread."""
+    import numba
+
+    from pipeline import runner
+
+    calls = []
+    monkeypatch.setattr(numba, "set_num_threads", calls.append)
+    image = tmp_path / "line.png"
+    image.write_bytes(synthetic.line(size=40, width=3).png_bytes())
+    run_batch([image], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync",
+                                   "runtime.until=field"))
+    assert calls and set(calls) == {numba.config.NUMBA_NUM_THREADS}
+    calls.clear()
+    runner._pin_threads()
+    assert calls == [1]
