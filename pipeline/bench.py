@@ -477,7 +477,7 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     return rows, tables
 
 
-_EXIT = ExitCode("polyvec-bench", config_name="bench_app")
+_EXIT = ExitCode("polyvec-bench")
 
 
 @hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")

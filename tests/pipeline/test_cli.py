@@ -145,6 +145,8 @@ def test_plain_paths_with_odd_characters(tmp_path, cli):
     (("export.foo=1",), "Could not override 'export.foo'"),
     (("export.bezier.enabled=true",), "export.bezier.enabled"),
     (("output=a(b)",), "cannot read the arguments"),
+    (("-m", "flow.lam=0.1,abc"), "Error merging override flow.lam=abc"),   # a sweep's later value too
+    (("hydra.run.foo=1",), "Could not override 'hydra.run.foo'"),
     (("does/not/exist.png",), "input not found: does/not/exist.png"),
 ])
 def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
