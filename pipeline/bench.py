@@ -41,8 +41,7 @@ from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError
 from pipeline.runner import BatchResult, TaskResult, plan, run_batch
 from pipeline.store import ArtifactStore
 from stages.config import from_section
-from stages.evaluate.curve_topology import TopologyParams
-from stages.evaluate.score import RasterParams
+from stages.evaluate import RasterParams, TopologyParams
 
 KEYPOINT_CLASSES = {"endpoints": 1, "junctions": 3, "corners": 5}
 
@@ -303,9 +302,9 @@ def score_case(case: Case, batch: BatchResult, store: ArtifactStore, bcfg: dict)
     (dict, dict)
         The row (flat, JSON-friendly) and picture data (grey, curves, markers).
     """
-    from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
-    from stages.evaluate.score import (RasterParams, estimate_stroke_width, fidelity_reference, gt_scale,
-                                       render_ink, score_raster, stage_timings)
+    from stages.evaluate.curve_topology import compare_topology, curve_topology
+    from stages.evaluate.score import (estimate_stroke_width, fidelity_reference, gt_scale, render_ink, score_raster,
+                                       stage_timings)
 
     rparams = from_section(RasterParams, bcfg["raster"], "bench.raster")
     tparams = from_section(TopologyParams, bcfg["topology"], "bench.topology")
@@ -478,7 +477,7 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     return rows, tables
 
 
-_EXIT = ExitCode("polyvec-bench", config_name="bench_app")
+_EXIT = ExitCode("polyvec-bench")
 
 
 @hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")

@@ -6,7 +6,7 @@ the vector layers (keypoints, frame-field crosses, traced graph, candidate paths
 final curves and their ends) are SVG, and a small script does the toggling, the pan and zoom (wheel,
 drag, up to 16×) and the keypoint editing: a click on the drawing adds a keypoint of the chosen type,
 a click on one cycles its type (endpoint → junction → corner → removed); "save edits" downloads
-``<stem>.keypoints.json`` (the format of :mod:`stages.keypoint_edits`) and shows it in a text box.
+``<stem>.keypoints.json`` (the format of :mod:`stages.keypoint_edits.stage`) and shows it in a text box.
 
 To stay light on 1024-px drawings the field is drawn as at most ``MAX_CROSSES`` crosses on a grid,
 heatmaps are rasterised at most ``HEATMAP_PX`` px on their long side, and coordinates are written

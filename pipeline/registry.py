@@ -25,7 +25,10 @@ class StageSpec:
     name : str
         Stage name; also its config group and the folder of its artifacts.
     module : str
-        Import path of the module exposing ``STAGE_VERSION`` and ``run``.
+        Import path of the stage's package: ``STAGE_VERSION`` and the config dataclasses, light enough to
+        import on every run; ``run`` (and a per-item stage's ``plan_items`` …) load lazily from its code
+        (``<module>.stage``, :mod:`stages.lazy`), so a run whose artifacts are all stored imports none of
+        the stages' code.
     inputs : tuple of str
         Upstream stages whose artifacts ``run`` receives as keyword arguments.
     persists : str
@@ -38,12 +41,12 @@ class StageSpec:
     persists: str
 
     def load(self) -> ModuleType:
-        """Import the stage module."""
+        """Import the stage's package (its code loads at the first use of ``run`` or another of its names)."""
         return _import(self.module)
 
     @property
     def version(self) -> str:
-        """The stage's ``STAGE_VERSION``."""
+        """The stage's ``STAGE_VERSION`` (imports the package, not the code)."""
         return str(self.load().STAGE_VERSION)
 
 
@@ -70,25 +73,28 @@ def _import(module: str) -> ModuleType:
 
 
 class StageUnavailable(RuntimeError):
-    """A stage's module is missing or lacks ``run``/``STAGE_VERSION``: the install is broken."""
+    """A stage's package or code is missing or lacks ``run``/``STAGE_VERSION``: the install is broken."""
 
 
-def check_stage(spec: StageSpec) -> None:
-    """Import a stage's module and check it exposes ``run`` and ``STAGE_VERSION``.
+def check_stage(spec: StageSpec, code: bool = False) -> None:
+    """Check that a stage's package exposes ``run`` and ``STAGE_VERSION``; with ``code``, import its code too.
 
     A stage is never silently left out of the DAG: that would let a broken install write artifacts
-    and SVGs of a different pipeline.
+    and SVGs of a different pipeline. Every run checks the packages (light: ``STAGE_VERSION`` and the
+    configs); the engine checks the code (numba, scipy …) of the stages that have work to do
+    before it runs any, so a stage that cannot load fails the run once, not each image.
 
     Raises
     ------
     StageUnavailable
-        The module cannot be imported or lacks ``run`` or ``STAGE_VERSION``.
+        The package (or, with ``code``, its code) cannot be imported, or lacks ``run`` or ``STAGE_VERSION``.
     """
     try:
         mod = spec.load()
+        # dir() lists the lazy names without importing the code; hasattr() imports it.
+        missing = [a for a in ("run", "STAGE_VERSION") if not (hasattr(mod, a) if code else a in dir(mod))]
     except ImportError as exc:
         raise StageUnavailable(f"stage {spec.name}: cannot import {spec.module} ({exc}); reinstall polyvec") from None
-    missing = [a for a in ("run", "STAGE_VERSION") if not hasattr(mod, a)]
     if missing:
         raise StageUnavailable(f"stage {spec.name}: {spec.module} has no {' or '.join(missing)}")
 

@@ -1,6 +1,6 @@
 """Render stored artifacts over their drawing (PNG), for ``polyvec-inspect render``.
 
-Each stage module may expose its own renderer (``render_field``, ``render_keypoints``,
+Each stage package may expose its own renderer (``render_field``, ``render_keypoints``,
 ``render_graph``, ``render_topology``); curves of flow/select/export are drawn here.
 """
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pipeline.registry import BY_NAME, StageSpec, active_stages
+from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
 
@@ -465,6 +465,11 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             pending.append(todo_final)
 
     if pending:
+        # Only now the code of the stages with work to do is imported (a stored artifact needs none).
+        todo = {t.stage for tasks in pending for t in tasks}
+        for spec in stages:
+            if spec.name in todo:
+                check_stage(spec, code=True)
         if cluster_mode(runtime, pending) == "sync":
             from pipeline import warmup
 

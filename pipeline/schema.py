@@ -6,6 +6,11 @@ one in Hydra's ConfigStore as ``<group>_schema``, and the app configs (``conf/co
 ``train_app.yaml``) put it first in the group, so composing the YAML onto it checks every key and type:
 an unknown key (in a file or an override) or a value of the wrong type is an error at start-up, and a
 key the file lacks is reported by :func:`validate`.
+
+Every start-up imports this module (``conf/__init__.py``), so what it imports stays light: a stage's
+package holds its dataclasses, not its code (:mod:`stages.lazy`), and the training's and the bench's
+dataclasses are in light modules too (:mod:`stages.keypoints.training.config`, :mod:`stages.evaluate`);
+``tests/pipeline/test_cli.py`` checks that a cached run imports no numba, scipy or torch.
 """
 
 from __future__ import annotations

@@ -264,8 +264,6 @@ class ArtifactStore:
     # -- reading -------------------------------------------------------------------------------
     def load(self, stage: str, key: str) -> Artifact:
         """Read an artifact; raises ``KeyError`` when it is not (completely) stored."""
-        import zarr
-
         if not self.exists(stage, key):
             raise KeyError(f"{stage}/{key} is not in the store {self.url}")
         path = self.path_for(stage, key)
@@ -274,6 +272,8 @@ class ArtifactStore:
         arrays = {}
         manifest = self.manifest(stage, key)
         if manifest.get("arrays"):
+            import zarr  # not for an artifact of JSON alone (export: a cached run imports no zarr)
+
             group = zarr.open_group(self._zarr_store(f"{path}/{ARRAYS}", read_only=True), mode="r")
             for name in manifest["arrays"]:
                 arrays[name] = group[name][...]

@@ -62,7 +62,7 @@ def unpack_ragged(flat: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
 class ItemPlan:
     """A stage's work as independent items, for a stage whose engine may reuse per-item results.
 
-    A per-item stage module exposes, beside ``run``: ``ITEM_INPUTS`` (the input stages every item's
+    A per-item stage exposes, beside ``run``: ``ITEM_INPUTS`` (the input stages every item's
     result depends on, besides the item's own content), ``plan_items(cfg, **inputs) -> ItemPlan``,
     ``run_items(plan, which) -> list[dict]`` (results of the items ``which``: dicts of numpy arrays,
     each a function of that item, ``context`` and the ``ITEM_INPUTS`` artifacts only) and

@@ -9,5 +9,53 @@
 - :mod:`stages.evaluate.score` — one case's scores, timings from manifests, summaries;
 - :mod:`stages.evaluate.svg` — polylines from SVG text; :mod:`stages.evaluate.report_pictures` — report pictures.
 
-Not a pipeline stage: no ``run``; pure functions of arrays used by ``pipeline/bench.py``.
+Not a pipeline stage: no ``run``; pure functions of arrays used by ``pipeline/bench.py``. The settings
+of the metrics (``bench.raster``, ``bench.topology``) are here, apart from the code, which imports
+scipy: the configs (:mod:`pipeline.schema`) need them at every start-up of ``polyvec``.
 """
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class TopologyParams:
+    """Tolerances of the topology extraction (conf/bench/default.yaml ``topology``), one field per key."""
+
+    meet_min_px: float
+    match_min_px: float
+    resample_px: float
+    crossing_min_angle_deg: float
+    junction_merge_factor: float
+    gap_max_px: float
+    gap_max_widths: float
+    dangling_max_px: float
+    dangling_max_widths: float
+    overlap_max_angle_deg: float
+    overlap_exclusion_factor: float
+    overlap_self_separation: float
+
+
+@dataclass
+class RasterParams:
+    """Raster metric settings (conf/bench/default.yaml ``raster``), one field per key."""
+
+    stroke_width_permille: float
+    min_stroke_width_px: float
+    renderer: str
+    long_edge: int | None
+    supersample: int
+    ink_threshold: float
+    f1_permille: tuple[float, ...]
+    f1_pixels: tuple[float, ...]
+    fidelity_reference: str
+
+    def __post_init__(self) -> None:
+        if self.fidelity_reference not in ("input", "skeleton"):
+            raise ValueError(f"raster.fidelity_reference must be input or skeleton, not {self.fidelity_reference!r}")
+        if self.renderer not in ("cairo", "supersample"):
+            raise ValueError(f"raster.renderer must be cairo or supersample, not {self.renderer!r}")
+        if self.long_edge is not None and int(self.long_edge) < 1:
+            raise ValueError(f"raster.long_edge must be a positive number of pixels or null, not {self.long_edge!r}")
+

@@ -46,28 +46,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from stages.evaluate import TopologyParams
 from stages.evaluate.matching import match_one_to_one, prf1
 from stages.geometry import subdivide
 
 __all__ = ["TopologyParams", "Topology", "curve_topology", "compare_topology", "benchmark_gap_statistics"]
-
-
-@dataclass
-class TopologyParams:
-    """Tolerances of the topology extraction (conf/bench/default.yaml ``topology``), one field per key."""
-
-    meet_min_px: float
-    match_min_px: float
-    resample_px: float
-    crossing_min_angle_deg: float
-    junction_merge_factor: float
-    gap_max_px: float
-    gap_max_widths: float
-    dangling_max_px: float
-    dangling_max_widths: float
-    overlap_max_angle_deg: float
-    overlap_exclusion_factor: float
-    overlap_self_separation: float
 
 
 @dataclass

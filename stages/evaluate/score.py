@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
-from stages.evaluate.curve_topology import TopologyParams, compare_topology, curve_topology
+from stages.evaluate import RasterParams, TopologyParams
+from stages.evaluate.curve_topology import compare_topology, curve_topology
 from stages.evaluate.raster import (benchmark_stroke_width, binarise, rasterise_polylines, rasterise_polylines_cairo,
                                     raster_metrics)
 
@@ -27,29 +27,6 @@ __all__ = [
     "stage_timings",
     "summarise",
 ]
-
-
-@dataclass
-class RasterParams:
-    """Raster metric settings (conf/bench/default.yaml ``raster``), one field per key."""
-
-    stroke_width_permille: float
-    min_stroke_width_px: float
-    renderer: str
-    long_edge: int | None
-    supersample: int
-    ink_threshold: float
-    f1_permille: tuple[float, ...]
-    f1_pixels: tuple[float, ...]
-    fidelity_reference: str
-
-    def __post_init__(self) -> None:
-        if self.fidelity_reference not in ("input", "skeleton"):
-            raise ValueError(f"raster.fidelity_reference must be input or skeleton, not {self.fidelity_reference!r}")
-        if self.renderer not in ("cairo", "supersample"):
-            raise ValueError(f"raster.renderer must be cairo or supersample, not {self.renderer!r}")
-        if self.long_edge is not None and int(self.long_edge) < 1:
-            raise ValueError(f"raster.long_edge must be a positive number of pixels or null, not {self.long_edge!r}")
 
 
 def render_ink(curves: Sequence[np.ndarray], shape: tuple[int, int], params: RasterParams,

@@ -1,6 +1,6 @@
 """Strokes through their sharp corners: the last clean-up of the selected curves (``export.corners``).
 
-Described in :mod:`stages.export`; measurements in stages/DECISIONS.md.
+Described in :mod:`stages.export.stage`; measurements in stages/DECISIONS.md.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Clean-ups of the selected curves before export: joins, link contraction, spurs and overshoots.
 
-Each is a choice beyond the paper, described in :mod:`stages.export` (measurements in
+Each is a choice beyond the paper, described in :mod:`stages.export.stage` (measurements in
 stages/DECISIONS.md). Curves are dicts ``{"id", "points", "end_types", "end_keypoints", "parts",
 "width", ...}`` (stages/INTERFACES.md, export); points are (x, y) pixel coordinates, corner origin.
 """

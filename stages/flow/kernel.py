@@ -1,6 +1,6 @@
 """The compiled PolyVector flow kernel (paper §5.4, Eq. 5, 6a, 10) and its building blocks.
 
-One numba kernel runs the whole iteration loop of every path block (see :mod:`stages.flow` for the
+One numba kernel runs the whole iteration loop of every path block (see :mod:`stages.flow.stage` for the
 scheme and its choices); the functions marked ``inline="always"`` are its parts, shared by the energy
 and the gradient that tests check it against.
 """

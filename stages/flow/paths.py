@@ -8,15 +8,12 @@ path's blocks — and its flowed curve — are bit-identical whichever other pat
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stages.artifact import pack_ragged
+from stages.flow import FlowConfig
 from stages.geometry import arc_length
-
-if TYPE_CHECKING:
-    from stages.flow import FlowConfig
 
 
 @dataclass

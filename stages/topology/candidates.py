@@ -22,8 +22,8 @@ from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
 from stages.geometry import arc_length, point_at_arc, turn_deg
+from stages.topology import TopologyConfig
 from stages.topology.allowed_paths import enumerate_allowed_paths
-from stages.topology.config import TopologyConfig
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.key_vertices import find_key_vertices, snap_position

@@ -49,7 +49,7 @@ _source_hash = source_hash
 def _cached(name: str, data: bytes, cache: Path, build):
     stages = ROOT / "stages"
     cfgs = json.dumps([_cfg(s) for s in ("prep", "field", "graph", "topology")], sort_keys=True).encode()
-    src = _source_hash(stages / "prep.py", stages / "field", stages / "graph", stages / "topology").encode()
+    src = _source_hash(stages / "prep", stages / "field", stages / "graph", stages / "topology").encode()
     key = hashlib.sha1(data + cfgs + src).hexdigest()[:16]
     out = cache / f"{name}-{key}.pkl"
     if out.exists():

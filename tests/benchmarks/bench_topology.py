@@ -57,7 +57,7 @@ def _upstream(name: str, data: bytes, cache: Path) -> dict:
 
     cfgs = [_cfg(s) for s in ("prep", "field", "graph")]
     key = hashlib.sha1(data + json.dumps(cfgs, sort_keys=True).encode()
-                       + _source_hash(ROOT / "stages" / "prep.py", ROOT / "stages" / "field",
+                       + _source_hash(ROOT / "stages" / "prep", ROOT / "stages" / "field",
                                       ROOT / "stages" / "graph").encode()).hexdigest()[:16]
     out = cache / f"{name}-{key}.pkl"
     if out.exists():

@@ -52,9 +52,9 @@ STAGES = ("prep", "field", "graph", "keypoints", "topology", "flow", "select", "
 INPUTS = {"prep": (), "field": ("prep",), "graph": ("prep", "field"), "keypoints": ("prep",),
           "topology": ("prep", "field", "graph", "keypoints"), "flow": ("prep", "field", "graph", "topology"),
           "select": ("prep", "topology", "flow"), "export": ("prep", "topology", "flow", "select")}
-SOURCES = {"prep": ["stages/prep.py"], "field": ["stages/field"], "graph": ["stages/graph"],
+SOURCES = {"prep": ["stages/prep"], "field": ["stages/field"], "graph": ["stages/graph"],
            "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow"],
-           "select": ["stages/select.py"], "export": ["stages/export"]}
+           "select": ["stages/select"], "export": ["stages/export"]}
 KP_CODES = {"endpoints": 1, "junctions": 3, "corners": 5}
 TARGETS = {"f1_2": (">=", 0.97), "hausdorff_px": ("<=", 3.0), "endpoint_f1": (">=", 0.9),
            "junction_f1": (">=", 0.85)}
@@ -73,7 +73,7 @@ _HASHES: dict[str, str] = {}
 
 
 def load_stages() -> None:
-    """Import every stage module and hash its source once, in this process.
+    """Import every stage's code and hash its source once, in this process.
 
     Pool workers fork from a process that already holds the code, so the cache keys always describe
     the code that runs, even when the sources change during a long run.
@@ -81,7 +81,7 @@ def load_stages() -> None:
     import importlib
 
     for stage in STAGES:
-        importlib.import_module(f"stages.{stage}")
+        importlib.import_module(f"stages.{stage}.stage")
         _HASHES[stage] = _source_hash(stage)
 
 

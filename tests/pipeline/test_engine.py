@@ -157,7 +157,7 @@ def test_artifact_memo_reuses_and_protects_loaded_artifacts(tmp_path):
 
 
 def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
-    """A broken install (a stage module gone) is an error, never a shorter DAG."""
+    """A broken install (a stage package gone) is an error, never a shorter DAG."""
     import pipeline.registry as registry
 
     broken = tuple(registry.StageSpec(s.name, "stages.no_such_module", s.inputs, s.persists) if s.name == "graph"
@@ -166,6 +166,33 @@ def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
     with pytest.raises(registry.StageUnavailable, match="stage graph: cannot import stages.no_such_module"):
         registry.active_stages()
     assert [s.name for s in registry.active_stages("field")] == ["prep", "field"]
+
+
+def test_a_stage_imports_its_code_only_when_it_computes(tmp_path, images, compose_cfg, monkeypatch):
+    """A run imports a stage's package (STAGE_VERSION, configs); its code loads only when the stage has work,
+    and code that cannot load (a broken install) stops the run once, before any work (issue 14)."""
+    import pipeline.registry as registry
+
+    pkg = tmp_path / "fake_field"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text('from stages.lazy import lazy_names\n\nSTAGE_VERSION = "1"\n'
+                                     '__getattr__, __dir__ = lazy_names(__name__, {"fake_field.stage": ("run",)})\n')
+    (pkg / "stage.py").write_text("from stages.artifact import Artifact\n\n\ndef run(cfg, prep):\n"
+                                  "    return Artifact(arrays={}, data={'ink': prep.data['ink_fraction']})\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    fake = registry.StageSpec("field", "fake_field", ("prep",), "")
+    monkeypatch.setattr(registry, "STAGES", tuple(fake if s.name == "field" else s for s in registry.STAGES))
+    monkeypatch.setitem(registry.BY_NAME, "field", fake)
+    store = f"store.path={tmp_path / 'store'}"
+    cfg = compose_cfg(store, "runtime.cluster=sync", "runtime.until=field")
+    assert _statuses(run_batch(images, cfg))["field"] == ["computed", "computed"]
+    (pkg / "stage.py").write_text("import no_such_library\n")   # the code breaks ...
+    monkeypatch.delitem(sys.modules, "fake_field.stage")
+    assert _statuses(run_batch(images, cfg))["field"] == ["cached", "cached"]   # ... and a cached run never sees it
+    assert "fake_field.stage" not in sys.modules
+    with pytest.raises(registry.StageUnavailable, match="stage field: cannot import fake_field .*no_such_library"):
+        run_batch(images, compose_cfg(store, "runtime.cluster=sync", "runtime.until=field", "field.beta=12"))
+    assert len(list((tmp_path / "store" / "field").glob("*/*"))) == 2   # nothing ran
 
 
 # -- the per-path memo of the flow (a per-item stage) ---------------------------------------------

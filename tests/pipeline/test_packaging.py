@@ -54,7 +54,7 @@ def test_runtime_dependencies_are_what_the_code_imports():
 
 
 def test_pulp_lower_bound_has_add_variable():
-    """stages/select.py builds its problem with LpProblem.add_variable, new in PuLP 3.3.1 (its HISTORY)."""
+    """stages/select/stage.py builds its problem with LpProblem.add_variable, new in PuLP 3.3.1 (its HISTORY)."""
     import re
 
     import pulp
@@ -84,8 +84,9 @@ def test_docs_say_what_the_code_does():
     import inspect
 
     import stages
-    from stages import field, prep
+    from stages.field import stage as field
     from stages.keypoints import network
+    from stages.prep import stage as prep
 
     assert "sigmoid)" not in inspect.getdoc(network.KeypointNet) and "torch.sigmoid" not in inspect.getsource(network)
     assert "(scipy) with a Jacobi" not in field.__doc__ and "_conjugate_gradient" in field.__doc__

@@ -427,7 +427,7 @@ def test_eval_keypoints_cli_scores_a_folder(tmp_path):
 
 def test_missing_packaged_weights_are_an_error_not_a_random_network(tmp_path, monkeypatch):
     """A deleted weights file must stop the stage: a randomly initialised network gives plausible nonsense."""
-    import stages.keypoints as kp
+    import stages.keypoints.stage as kp
 
     monkeypatch.setitem(kp._PACKAGED_NETWORKS, "packaged", tmp_path / "keypoints.pt")
     monkeypatch.setattr(kp, "_MODELS", {})

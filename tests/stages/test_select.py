@@ -13,6 +13,7 @@ from stages import select
 from stages.artifact import Artifact, pack_ragged
 from stages.config import from_section
 from stages.errors import InputError
+from stages.select import stage as select_code  # where select_paths looks solve_mip up
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = yaml.safe_load((ROOT / "conf" / "select" / "default.yaml").read_text())
@@ -143,7 +144,7 @@ def test_infeasible_program_uses_the_documented_fallback_not_all_curves():
 
 @pytest.mark.parametrize("reason", ["no_solution", "solver_error: boom"])
 def test_solver_failures_fall_back_and_report(monkeypatch, reason):
-    monkeypatch.setattr(select, "solve_mip", lambda problem, params: (None, reason, None))
+    monkeypatch.setattr(select_code, "solve_mip", lambda problem, params: (None, reason, None))
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["status"] == f"fallback: {reason}"
     assert art.data["chosen"] == [11]
@@ -153,14 +154,14 @@ def test_solver_failures_fall_back_and_report(monkeypatch, reason):
 
 def test_a_time_limited_selection_says_so(monkeypatch):
     """CBC stopped by select.time_limit with an integer solution: used, and said to be unproven."""
-    monkeypatch.setattr(select, "solve_mip", lambda problem, params: (np.array([False, True]), "feasible", 72.0))
+    monkeypatch.setattr(select_code, "solve_mip", lambda problem, params: (np.array([False, True]), "feasible", 72.0))
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["status"] == "feasible" and art.data["chosen"] == [11]
     assert art.notes == ["selection not proven optimal (feasible; CBC stops at select.time_limit = 20 s)"]
 
 
 def test_a_violating_solver_answer_is_not_trusted(monkeypatch):
-    monkeypatch.setattr(select, "solve_mip",
+    monkeypatch.setattr(select_code, "solve_mip",
                         lambda problem, params: (np.zeros(len(problem.cost), bool), "optimal", 0.0))
     art = _run([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     assert art.data["status"].startswith("fallback: optimal answer violates")

@@ -32,22 +32,14 @@ perceptron of :mod:`stages.keypoints.valence` (settings ``train.type_classifier`
 keypoints of generated drawings run through the real prep and keypoints stages.
 """
 
-# The entry points load lazily (PEP 562): the configs import ``training.config`` at every start-up,
-# and the training modules import torch (about 1.5 s), which a plain vectorisation never needs.
-_EXPORTS = {
+# The entry points load lazily (PEP 562, :mod:`stages.lazy`): the configs import ``training.config`` at
+# every start-up, and the training modules import torch (about 1.5 s), which a plain vectorisation never needs.
+from stages.lazy import lazy_names
+
+__getattr__, __dir__ = lazy_names(__name__, {
     "stages.keypoints.training.data": ("category_split", "draw_vector", "prepare_sample", "render_vector",
                                        "validation_set", "vector_pool", "vector_samples", "vector_split"),
     "stages.keypoints.training.loop": ("evaluate", "export_weights", "train", "train_class_branch"),
     "stages.keypoints.training.type_classifier": ("fit_type_classifier", "train_type_classifier",
                                                   "type_classifier_data"),
-}
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str):
-    if name in _WHERE:
-        import importlib
-
-        return getattr(importlib.import_module(_WHERE[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+})

@@ -4,6 +4,12 @@
 ``python -m pipeline.train --plain`` checks its YAML with :func:`stages.config.from_section`, so the
 YAML and these classes cannot disagree. The training code reads the plain dict; the sections with a
 class of their own (``network``, ``generator``, ``labels``) are built with ``from_section`` where used.
+
+The classes of ``generator`` and ``labels`` are here rather than beside their code
+(:mod:`~stages.keypoints.training.generator`, :mod:`~stages.keypoints.training.labels`, which import
+them from here), and ``network``'s is in :mod:`stages.keypoints.net_config`: the configs need them at
+every start-up, and that code imports numba, scipy and torch, which a vectorisation whose artifacts are
+stored never needs.
 """
 
 from __future__ import annotations
@@ -12,8 +18,39 @@ from dataclasses import dataclass
 from typing import Any
 
 from stages.keypoints.net_config import NetConfig
-from stages.keypoints.training.generator import GeneratorConfig
-from stages.keypoints.training.labels import LabelRules
+
+
+@dataclass
+class GeneratorConfig:
+    """Distribution of the procedural drawings (``conf/train/default.yaml`` ``generator``)."""
+
+    size_min: int
+    size_max: int
+    primitives_min: int
+    primitives_max: int
+    width_min: float
+    width_max: float
+    width_log_mean: float     # log(px) of the typical base width (e ≈ 2.7 px)
+    width_log_std: float
+    width_vary_prob: float    # per-stroke widths differ within a drawing
+    pressure_prob: float      # width modulated along the stroke, tapered ends
+    jitter_px: float          # hand tremor amplitude (low-frequency), px
+    pencil_prob: float
+    blur_max: float           # Gaussian blur sigma, px
+    paper_noise_max: float    # std of paper noise (1 = black-to-white)
+    ink_min: float            # lightest ink darkness (pencil)
+    gap_max: float            # T-ends stop short / overshoot by up to this × width
+    thin_prob: float          # share of drawings in thin grey aliased ink (1–2 px, hard edges)
+
+
+@dataclass
+class LabelRules:
+    """Thresholds of the labelling rules (``conf/train/default.yaml`` ``labels``)."""
+
+    min_radius: float
+    corner_turn_deg: float
+    crossing_min_deg: float
+    step: float
 
 
 @dataclass

@@ -24,30 +24,8 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from stages.keypoints.training.labels import LabelRules, label_keypoints
-
-
-@dataclass
-class GeneratorConfig:
-    """Distribution of the procedural drawings (``conf/train/default.yaml`` ``generator``)."""
-
-    size_min: int
-    size_max: int
-    primitives_min: int
-    primitives_max: int
-    width_min: float
-    width_max: float
-    width_log_mean: float     # log(px) of the typical base width (e ≈ 2.7 px)
-    width_log_std: float
-    width_vary_prob: float    # per-stroke widths differ within a drawing
-    pressure_prob: float      # width modulated along the stroke, tapered ends
-    jitter_px: float          # hand tremor amplitude (low-frequency), px
-    pencil_prob: float
-    blur_max: float           # Gaussian blur sigma, px
-    paper_noise_max: float    # std of paper noise (1 = black-to-white)
-    ink_min: float            # lightest ink darkness (pencil)
-    gap_max: float            # T-ends stop short / overshoot by up to this × width
-    thin_prob: float          # share of drawings in thin grey aliased ink (1–2 px, hard edges)
+from stages.keypoints.training.config import GeneratorConfig, LabelRules
+from stages.keypoints.training.labels import label_keypoints
 
 
 @dataclass

@@ -31,24 +31,12 @@ Points are (x, y), pixel units, origin at the top-left corner of the image.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.geometry import point_at_arc, resample_uniform
 from stages.keypoints.codes import CORNER, ENDPOINT, JUNCTION
-
-
-@dataclass
-class LabelRules:
-    """Thresholds of the labelling rules (``conf/train/default.yaml`` ``labels``)."""
-
-    min_radius: float
-    corner_turn_deg: float
-    crossing_min_deg: float
-    step: float
-
+from stages.keypoints.training.config import LabelRules
 
 
 def _at(points: np.ndarray, arc: np.ndarray, s: np.ndarray | float, closed: bool) -> np.ndarray:

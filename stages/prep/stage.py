@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import io
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -42,36 +41,9 @@ from scipy import ndimage
 from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
-
-STAGE_VERSION = "4"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
-#                     4: the band threshold stays clear of the paper grain
+from stages.prep import PrepConfig
 
 _EIGHT = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]])
-
-
-@dataclass
-class ContrastConfig:
-    """``prep.contrast``: percentile stretch of the grey levels (darkest ink → black, paper → white)."""
-
-    enabled: bool
-    low_percentile: float
-    high_percentile: float
-    min_contrast: float
-
-
-@dataclass
-class PrepConfig:
-    """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
-
-    max_pixels: int
-    threshold: float
-    repair_passes: int
-    repair_neighbours: int
-    repair_max_grey: float
-    min_component_px: int
-    paper_grain_sigmas: float
-    max_ink_fraction: float
-    contrast: ContrastConfig
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:

@@ -23,7 +23,6 @@ content to :func:`run` as ``cfg["edits"]``; the stage itself reads nothing from 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,24 +30,9 @@ import numpy as np
 from stages.artifact import Artifact
 from stages.errors import InputError
 
-STAGE_VERSION = "1"
 FORMAT = "polyvec-keypoint-edits"
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
 TYPE_CODES = {v: k for k, v in TYPE_NAMES.items()}
-
-
-@dataclass
-class KeypointEditsConfig:
-    """The ``keypoint_edits`` config section (``conf/keypoint_edits/default.yaml``), one field per key.
-
-    ``file`` and ``auto`` locate the edits file; the engine reads them (:mod:`pipeline.edits`) and
-    hands :func:`run` ``match_radius`` and the parsed file as ``edits`` instead, so that the key hashes
-    the file's content, not its path.
-    """
-
-    file: str | None
-    auto: bool
-    match_radius: float
 
 
 def _type_code(value: Any, where: str) -> int:

@@ -1,0 +1,45 @@
+"""Stage ``prep``: decode the drawing, grey it, normalise its contrast and find the narrow band.
+
+``STAGE_VERSION`` and the config dataclasses. Its code, and the docstring that describes it and its
+choices, are in :mod:`stages.prep.stage`; ``run`` and its other public names load from there when
+first used (:mod:`stages.lazy`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages.lazy import lazy_names
+
+STAGE_VERSION = "4"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+#                     4: the band threshold stays clear of the paper grain
+
+
+@dataclass
+class ContrastConfig:
+    """``prep.contrast``: percentile stretch of the grey levels (darkest ink → black, paper → white)."""
+
+    enabled: bool
+    low_percentile: float
+    high_percentile: float
+    min_contrast: float
+
+
+@dataclass
+class PrepConfig:
+    """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
+
+    max_pixels: int
+    threshold: float
+    repair_passes: int
+    repair_neighbours: int
+    repair_max_grey: float
+    min_component_px: int
+    paper_grain_sigmas: float
+    max_ink_fraction: float
+    contrast: ContrastConfig
+
+
+__getattr__, __dir__ = lazy_names(__name__, {
+    "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band"),
+})
