@@ -248,14 +248,12 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
     if "keypoint_edits" in stages:
         announce_edits(images, cfg, console)
-    from pipeline import warmup
-
-    if warmup.uncompiled(stages):
-        console.print("polyvec: compiling kernels, first run only (about half a minute)", highlight=False)
     PROGRESS.start(len(images), stages[-1] if stages else None)
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         try:
-            batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store)
+            batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store,
+                              on_compile=lambda: console.print("polyvec: compiling kernels, first run only "
+                                                               "(about half a minute)", highlight=False))
         except ClusterError as exc:
             store.remove_if_unused()  # a run that did nothing leaves no empty store folder
             raise UsageError(str(exc)) from None

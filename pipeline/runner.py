@@ -418,7 +418,7 @@ def close_client() -> None:
 
 
 def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResult], None] | None = None,
-              store: ArtifactStore | None = None) -> BatchResult:
+              store: ArtifactStore | None = None, on_compile: Callable[[], None] | None = None) -> BatchResult:
     """Run the stage DAG over images through the content-addressed store.
 
     Parameters
@@ -431,6 +431,9 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         Called in the driver with every :class:`TaskResult` as it arrives (progress display).
     store : ArtifactStore, optional
         Defaults to ``ArtifactStore(cfg.store.path)``.
+    on_compile : callable, optional
+        Called once, before any work, when a stage with work to do has numba kernels that are not
+        compiled yet (a fresh install's first run, which takes longer).
 
     Returns
     -------
@@ -470,12 +473,14 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         for spec in stages:
             if spec.name in todo:
                 check_stage(spec, code=True)
-        if cluster_mode(runtime, pending) == "sync":
-            from pipeline import warmup
+        from pipeline import warmup
 
+        if on_compile is not None and warmup.uncompiled(sorted(todo)):
+            on_compile()
+        if cluster_mode(runtime, pending) == "sync":
             # One image in-process leaves a core idle: its graph and flow kernels (first run only)
             # compile there meanwhile.
-            warmup.start(sorted({t.stage for tasks in pending for t in tasks}))
+            warmup.start(sorted(todo))
             try:
                 _run_sync(pending, store.url, batch, report)
             finally:
