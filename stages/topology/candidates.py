@@ -86,7 +86,7 @@ class _Extractor:
         self.search_turn_ok = near_singularity_only(g, self.turn_ptr, self.turn_ok)
         self.no_turn_test = np.ones_like(self.turn_ok)
         self.pixel_xy, self.pixel_flat = band_pixels(self.mask)
-        pix, ver = edge_coverage(g.xy, g.width, g.edges, self.comp_of, self.pixel_xy, conf.coverage_margin_px)
+        pix, ver = edge_coverage(g.xy, g.width, g.edges, self.comp_of, self.mask, conf.coverage_margin_px)
         self.cov = CoverageState(len(self.pixel_xy), self.n, pix, ver)
 
     def component(self, c: int) -> list[dict]:

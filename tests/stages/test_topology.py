@@ -419,3 +419,25 @@ def test_real_graph_example_without_keypoints_is_covered():
     art, inputs = _run_real(synthetic.example_drawing())
     assert _uncovered(art, inputs) == 0
     assert all(p["end_types"] == [0, 0] for p in art.data["paths"])
+
+
+def test_coverage_by_pixel_boxes_equals_the_kd_tree_query():
+    """The band's capsule coverage scans each capsule's pixel box (in chunks); it must give exactly the
+    members the KD-tree query gives, for any chunk size, segments leaving the image included."""
+    from scipy.spatial import cKDTree
+
+    from stages.topology.coverage import band_capsule_members, band_pixels, capsule_members
+
+    rng = np.random.default_rng(3)
+    mask = rng.random((60, 80)) < 0.4
+    a = rng.uniform(-5, 85, (300, 2))
+    b = a + rng.normal(0, 3, (300, 2))
+    ra, rb = rng.uniform(0.3, 6, 300), rng.uniform(0.3, 6, 300)
+    pts, _ = band_pixels(mask)
+    flat, off = capsule_members(pts, cKDTree(pts), a, b, ra, rb)
+    assert len(flat) > 1000
+    for chunk in (1, 500, 10**7):
+        f2, o2 = band_capsule_members(mask, a, b, ra, rb, chunk=chunk)
+        assert np.array_equal(f2, flat) and np.array_equal(o2, off)
+    empty, offsets = band_capsule_members(np.zeros((5, 5), bool), a, b, ra, rb)
+    assert len(empty) == 0 and len(offsets) == 301 and not offsets.any()
