@@ -19,7 +19,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.registry import BY_NAME, StageUnavailable
+from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
 from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, write_outputs
 from pipeline.store import ArtifactStore
 
@@ -53,7 +53,7 @@ See also: polyvec-inspect, polyvec-bench, polyvec-train."""
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp"}
 EXAMPLE_NAME = "polyvec-example.png"
-REPO_CONF = Path(__file__).resolve().parents[1] / "conf"
+REPO_CONF = CONF_DIR
 
 
 class UsageError(Exception):

@@ -51,13 +51,9 @@ def load_ground_truth(png: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _configs(overrides: dict) -> tuple[dict, dict]:
-    import yaml
+    from pipeline.registry import default_config
 
-    import conf
-
-    root = Path(conf.__file__).resolve().parent
-    prep_cfg = yaml.safe_load((root / "prep" / "default.yaml").read_text())
-    kp_cfg = yaml.safe_load((root / "keypoints" / "default.yaml").read_text())
+    prep_cfg, kp_cfg = default_config("prep"), default_config("keypoints")
     kp_cfg.update({k: v for k, v in overrides.items() if v is not None})
     return prep_cfg, kp_cfg
 

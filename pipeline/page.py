@@ -23,14 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.registry import STAGES
+from pipeline.registry import STAGES, default_config
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
 from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
 HEATMAP_PX = 512
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 STAGE_ORDER = [s.name for s in STAGES]
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
 
@@ -163,18 +162,13 @@ def field_crosses(roots: np.ndarray, mask: np.ndarray, max_crosses: int = MAX_CR
 
 def _config_diff(stage: str, config: dict) -> dict:
     """Entries of a manifest's config that differ from ``conf/<stage>/default.yaml`` (dotted keys)."""
-    import yaml
-
+    defaults = default_config(stage)
     if stage == "keypoint_edits":
         e = config.get("edits") or {}
-        out = {k: v for k, v in config.items() if k != "edits"}
-        defaults = yaml.safe_load((CONF_DIR / stage / "default.yaml").read_text()) or {}
-        out = {k: v for k, v in out.items() if defaults.get(k) != v}
+        out = {k: v for k, v in config.items() if k != "edits" and defaults.get(k) != v}
         if e:
             out["edits"] = f"+{len(e.get('added', []))} −{len(e.get('removed', []))} ~{len(e.get('retyped', []))}"
         return out
-    path = CONF_DIR / stage / "default.yaml"
-    defaults = yaml.safe_load(path.read_text()) if path.is_file() else {}
 
     def flat(d, prefix=""):
         items = {}

@@ -13,7 +13,19 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 from types import ModuleType
+
+#: The Hydra config folder: one group per stage (``conf/<stage>/default.yaml``) and the apps.
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+def default_config(group: str) -> dict:
+    """A config group's defaults, ``conf/<group>/default.yaml``, as a plain dict (empty without one)."""
+    import yaml
+
+    path = CONF_DIR / group / "default.yaml"
+    return (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
 
 
 @dataclass(frozen=True)

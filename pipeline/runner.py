@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from pipeline import warmup
 from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
@@ -473,8 +474,6 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         for spec in stages:
             if spec.name in todo:
                 check_stage(spec, code=True)
-        from pipeline import warmup
-
         if on_compile is not None and warmup.uncompiled(sorted(todo)):
             on_compile()
         if cluster_mode(runtime, pending) == "sync":
@@ -517,8 +516,6 @@ def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
 
 
 def _run_sync(pending, store_url, batch, report) -> None:
-    from pipeline import warmup
-
     for tasks in pending:
         per = batch.results[tasks[0].image]
         for t in tasks:

@@ -20,6 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from pipeline.registry import default_config
+
 #: Modules whose numba kernels are compiled on first use and cached on disk, per stage.
 KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"),
                   "topology": ("stages/topology/constrained_path.py",), "flow": ("stages/flow/kernel.py",)}
@@ -113,12 +115,6 @@ def stop() -> None:
             proc.wait()
 
 
-def _default_section(stage: str) -> dict:
-    import yaml
-
-    return yaml.safe_load((_ROOT / "conf" / stage / "default.yaml").read_text())
-
-
 def warm(stage: str) -> None:
     """Compile ``stage``'s kernels by running its code on the bundled example drawing (defaults).
 
@@ -136,14 +132,14 @@ def warm(stage: str) -> None:
         from stages.synthetic import example_drawing
 
         png = example_drawing().png_bytes()
-        p = prep.run(_default_section("prep"), image_bytes=png, image_name="example.png")
-        f = field_run(_default_section("field"), prep=p)
-        graph.run(_default_section("graph"), prep=p, field=f)
+        p = prep.run(default_config("prep"), image_bytes=png, image_name="example.png")
+        f = field_run(default_config("field"), prep=p)
+        graph.run(default_config("graph"), prep=p, field=f)
     elif stage == "flow":
         from stages.config import from_section
         from stages.flow import FlowConfig, polyvector_flow
 
-        params = from_section(FlowConfig, dict(_default_section("flow"), iterations=3), "flow")
+        params = from_section(FlowConfig, dict(default_config("flow"), iterations=3), "flow")
         c0 = np.full((16, 16), 0.1 + 0j)
         c2 = np.full((16, 16), -0.5 + 0j)
         xy = np.stack([np.linspace(2.0, 13.0, 12), np.linspace(3.0, 12.0, 12)], axis=1)

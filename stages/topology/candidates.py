@@ -85,9 +85,9 @@ class _Extractor:
         self.turn_ptr, self.turn_ok = turn_table(g, motions, conf.turn_min_cos)
         self.search_turn_ok = near_singularity_only(g, self.turn_ptr, self.turn_ok)
         self.no_turn_test = np.ones_like(self.turn_ok)
-        self.pixel_xy, self.pixel_flat = band_pixels(self.mask)
+        _, self.pixel_flat = band_pixels(self.mask)
         pix, ver = edge_coverage(g.xy, g.width, g.edges, self.comp_of, self.mask, conf.coverage_margin_px)
-        self.cov = CoverageState(len(self.pixel_xy), self.n, pix, ver)
+        self.cov = CoverageState(len(self.pixel_flat), self.n, pix, ver)
 
     def component(self, c: int) -> list[dict]:
         conf, g, cov = self.conf, self.g, self.cov

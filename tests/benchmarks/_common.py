@@ -10,9 +10,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def stage_cfg(stage: str) -> dict:
     """A stage's default config section from conf/<stage>/default.yaml."""
-    import yaml
+    from pipeline.registry import default_config
 
-    return yaml.safe_load((ROOT / "conf" / stage / "default.yaml").read_text())
+    return default_config(stage)
 
 
 def source_hash(*paths: Path) -> str:

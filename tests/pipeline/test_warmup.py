@@ -22,7 +22,7 @@ _CHECK = r"""
 import gc, json, sys
 import numpy as np
 from numba.core.dispatcher import Dispatcher
-from pipeline.warmup import _default_section as cfg
+from pipeline.registry import default_config as cfg
 from stages import graph, prep, synthetic
 from stages.config import from_section
 from stages.field import run as field_run
