@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "1"
+STAGE_VERSION = "2"  # 2: the solve in real form (same system; the coefficients move in their last bits)
 
 __all__ = [
     "FieldConfig", "STAGE_VERSION", "run", "compute_field", "image_tangents", "coherence_weights",

@@ -210,6 +210,31 @@ def test_cg_tolerance_matches_a_tight_solve():
     assert np.abs(loose["c0"] - tight["c0"]).max() < 1e-3
 
 
+def test_real_form_solve_equals_a_direct_complex_solve():
+    """The CG runs on four real columns and never forms the complex matrix: it must solve it."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    from stages.field import FieldConfig
+    from stages.field import stage as fs
+    d = synthetic.example_drawing()
+    mask = d.grey < THRESHOLD
+    cfg = FieldConfig(**dict(CFG, cg_rtol=1e-12))
+    tau, gmag = fs.image_tangents(d.grey, cfg.gradient_cutoff)
+    w = fs.coherence_weights(tau, gmag)
+    k, off, rhs = fs._assemble(mask, fs._region_index(mask), tau[mask], w, cfg)
+    a = sp.bmat([[k, sp.diags(off)], [sp.diags(off.conj()), k]], format="csc").astype(np.complex128)
+    b = rhs.view(np.complex128)
+    direct = spsolve(a, np.concatenate([b[:, 0], b[:, 1]]))
+    x, _, converged = fs._conjugate_gradient(fs._field_operator(k, off), k.diagonal(), rhs, None, 1e-12, 5000)
+    xc = x.view(np.complex128)
+    assert converged
+    assert np.abs(np.concatenate([xc[:, 0], xc[:, 1]]) - direct).max() < 1e-8 * np.abs(direct).max()
+    # And compute_field's single solve is that solution.
+    once = _run(d.grey, mask, max_singularity_iterations=1, cg_rtol=1e-12)
+    assert np.abs(once["c0"][mask] - direct[:len(xc)]).max() < 1e-6 * np.abs(direct).max()
+
+
 @pytest.mark.parametrize("angle", [0.0, 90.0])
 def test_axis_aligned_strokes_put_the_tangent_first(angle):
     """The frame {x, y} is one polynomial for horizontal and vertical strokes: moduli tie exactly, and
