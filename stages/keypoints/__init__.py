@@ -47,6 +47,7 @@ class KeypointsConfig:
     band_dilation: int
     subpixel: bool
     contrast_floor: float
+    single_pass_max: int
     tile_size: int
     tile_overlap: int
     max_keypoints: int

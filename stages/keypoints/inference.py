@@ -9,9 +9,12 @@ Choices made on purpose
   applies the very same function (stages/keypoints/training/), so the network sees what it was trained on.
 * **Padding** as the authors: zeros (paper) at the bottom and right up to a multiple of the network's
   stride, always 1..stride pixels (their ``8 - dim % 8``).
-* **Tiles**: drawings larger than ``tile_size`` run in overlapping tiles whose outputs are blended
-  with weights that ramp linearly over the overlap (no seams); the authors cut non-overlapping
-  720-px tiles, which leaves seams and loses keypoints on tile borders.
+* **Tiles**: drawings larger than ``single_pass_max`` run in overlapping ``tile_size`` tiles whose
+  outputs are blended with weights that ramp linearly over the overlap (no seams); the authors cut
+  non-overlapping 720-px tiles, which leaves seams and loses keypoints on tile borders.  Tiles with
+  no pixel of the dilated band are skipped (their output is zeroed anyway), so 512-px tiles pay on
+  a large sparse scan what 1024-px ones would not skip (4× elephant, 2000×3012: 40 → 22 s, the same
+  keypoints to 0.05 px).
 * **Peaks**: ``skimage.feature.peak_local_max`` on H1 with ``threshold`` (authors 0.5) and
   ``min_distance`` (authors 1, which lets duplicate peaks 2 px apart through; 3 by default), only
   within ``band_dilation`` px of the narrow band: the loss only ever saw the band, so the heatmaps
@@ -67,7 +70,8 @@ def _tile_starts(n: int, tile: int, step: int) -> list[int]:
 
 
 def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int,
-                     detection_only: bool = False) -> np.ndarray:
+                     detection_only: bool = False, needed: np.ndarray | None = None,
+                     single_pass_max: int | None = None) -> np.ndarray:
     """Heatmaps H1..H4 of a normalised drawing, tiled with blended overlaps when large.
 
     Parameters
@@ -80,6 +84,15 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
         Tile side and overlap in pixels (rounded down to the network's multiple).
     detection_only : bool
         Compute H1 alone (``model.detect``), skipping the class branch.
+    single_pass_max : int, optional
+        A drawing whose padded sides are both at most this (and at least ``tile_size``) runs in one
+        pass; default ``tile_size``.
+    needed : numpy.ndarray, optional
+        bool (H, W): the pixels whose values the caller keeps (the stage zeroes the rest: the dilated
+        band).  A tile holding none of them is not run and its pixels come out 0; every pixel the
+        caller keeps has the same value as without skipping (a pixel of a skipped tile is not
+        needed, so only unneeded pixels lose a tile's share of the blend).  Line drawings are
+        sparse: most tiles of a large scan hold no stroke.
 
     Returns
     -------
@@ -95,7 +108,8 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
     t = torch.from_numpy(xp)[None, None]
     net = model.detect if detection_only else (lambda a: model(a)[0])
     with torch.inference_mode():
-        if hp <= tile and wp <= tile:
+        whole = max(tile, single_pass_max or 0)
+        if hp <= whole and wp <= whole:
             out = net(t)[0].float().numpy()
             return np.ascontiguousarray(out[:, :h, :w])
         acc = np.zeros((1 if detection_only else 4, hp, wp), np.float32)
@@ -105,12 +119,15 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
         for i0 in _tile_starts(hp, tile, tile - overlap):
             for j0 in _tile_starts(wp, tile, tile - overlap):
                 th, tw = min(tile, hp), min(tile, wp)
+                if needed is not None and not needed[i0:i0 + th, j0:j0 + tw].any():
+                    continue
                 y = net(t[..., i0:i0 + th, j0:j0 + tw])[0].float().numpy()
                 wt = ramp[:th, None] * ramp[None, :tw] if (th == tile and tw == tile) else \
                     np.outer(ramp[:th] if th == tile else np.ones(th), ramp[:tw] if tw == tile else np.ones(tw))
                 acc[:, i0:i0 + th, j0:j0 + tw] += y * wt
                 wsum[i0:i0 + th, j0:j0 + tw] += wt
-        return np.ascontiguousarray((acc / wsum)[:, :h, :w])
+        # Pixels of skipped tiles only: weight 0, value 0.
+        return np.ascontiguousarray((acc / np.where(wsum > 0, wsum, 1.0))[:, :h, :w])
 
 
 def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,

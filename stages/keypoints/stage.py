@@ -146,7 +146,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     """
     import torch
 
-    from stages.keypoints.inference import network_input, predict_heatmaps
+    from stages.keypoints.inference import dilate_band, network_input, predict_heatmaps
 
     c = from_section(KeypointsConfig, cfg, "keypoints")
     torch.set_num_threads(c.torch_threads)
@@ -156,7 +156,10 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     model, name = load_model(c.weights)
     x = network_input(grey, c.contrast_floor)
     tiles = c.tile_size, c.tile_overlap
-    heatmaps = predict_heatmaps(model, x, *tiles)
+    mask = np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None
+    # Tiles with no pixel of the dilated band are not run: keypoints_from_heatmaps zeroes them anyway.
+    needed = dilate_band(mask, c.band_dilation) if (c.restrict_to_band and mask is not None) else None
+    heatmaps = predict_heatmaps(model, x, *tiles, needed=needed, single_pass_max=c.single_pass_max)
     ensemble = list(c.detection_ensemble)
     if ensemble:
         # Detection ensemble: H1 is the mean over the networks; the class maps (H2..H4), which the
@@ -164,11 +167,11 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         h1 = heatmaps[0].copy()
         for w in ensemble:
             other, other_name = load_model(w)
-            h1 += predict_heatmaps(other, x, *tiles, detection_only=True)[0]
+            h1 += predict_heatmaps(other, x, *tiles, detection_only=True, needed=needed,
+                                   single_pass_max=c.single_pass_max)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
-    heatmaps, points, types, scores = keypoints_from_heatmaps(
-        cfg, heatmaps, np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None)
+    heatmaps, points, types, scores = keypoints_from_heatmaps(cfg, heatmaps, mask)
     notes = []
     cap = c.max_keypoints
     if len(points) > cap:

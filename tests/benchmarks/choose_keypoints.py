@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, w in nets.items():
             model, _ = load_model(w)
             hm = predict_heatmaps(model, x, int(kcfg["tile_size"]), int(kcfg["tile_overlap"]),
-                                  detection_only=name not in mains)
+                                  detection_only=name not in mains, single_pass_max=int(kcfg["single_pass_max"]))
             maps[name] = hm.astype(np.float16)
         cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps))
         print(f"\r{len(cases)} drawings", end="", file=sys.stderr, flush=True)

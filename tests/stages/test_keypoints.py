@@ -18,7 +18,7 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
-from stages.keypoints.inference import find_keypoints, network_input, predict_heatmaps
+from stages.keypoints.inference import _tile_starts, dilate_band, find_keypoints, network_input, predict_heatmaps
 from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms
 from stages.keypoints.training.generator import drawing_from_strokes, generate, render_strokes
 from stages.keypoints.training.human_strokes import read_quickdraw_ndjson, read_svg_strokes
@@ -198,6 +198,27 @@ def test_tiles_blend_without_seams():
         h1 = predict_heatmaps(net, x, tile, 32 if tile == 64 else 64, detection_only=True)
         assert h1.shape == (1,) + x.shape
         np.testing.assert_allclose(h1[0], full[0], atol=1e-5)
+
+
+def test_tiles_without_band_are_skipped_and_change_no_kept_pixel():
+    torch.manual_seed(0)
+    net = KeypointNet(TINY_NET).eval()
+    grey = np.ones((200, 200), np.float32)
+    grey[150:154, 20:180] = 0.0          # one stroke near the bottom: the top tiles hold no band
+    x = network_input(grey, 0.5)
+    needed = dilate_band(grey < 0.65, 3)
+    calls = []
+    counting = KeypointNet(TINY_NET).eval()
+    counting.load_state_dict(net.state_dict())
+    counting.forward = (lambda f: (lambda t: (calls.append(t.shape), f(t))[1]))(counting.forward)
+    full = predict_heatmaps(net, x, 64, 16)
+    skipped = predict_heatmaps(counting, x, 64, 16, needed=needed)
+    assert 0 < len(calls) < len(_tile_starts(x.shape[0] + 8, 64, 48)) * len(_tile_starts(x.shape[1] + 8, 64, 48))
+    np.testing.assert_array_equal(skipped[:, needed], full[:, needed])
+    assert not skipped[:, :96].any()      # rows that only skipped tiles cover are 0
+    # single_pass_max: up to it the drawing runs whole, as with a tile that large
+    whole = predict_heatmaps(net, x, 64, 16, single_pass_max=256)
+    np.testing.assert_array_equal(whole, predict_heatmaps(net, x, 4096, 16))
 
 
 def test_run_artifact_contract():
