@@ -223,11 +223,13 @@ def final_curves(store: ArtifactStore, keys: dict[str, str]) -> tuple[list[np.nd
 
 
 def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.ndarray, np.ndarray] | None:
-    """(points (n, 2) in (x, y), types (n,)) of the keypoints artifact, or None."""
+    """(points (n, 2) in (x, y) of the drawing's pixels, types (n,)) of the keypoints artifact, or None."""
     if "keypoints" not in keys:
         return None
     art = store.load("keypoints", keys["keypoints"])
-    pts = np.asarray(art.arrays.get("points", np.zeros((0, 2))), dtype=np.float64).reshape(-1, 2)
+    # A supersampled prep (thin strokes) puts the keypoints at `scale` × the drawing's pixels.
+    scale = float(art.data.get("scale", 1) or 1)
+    pts = np.asarray(art.arrays.get("points", np.zeros((0, 2))), dtype=np.float64).reshape(-1, 2) / scale
     types = np.asarray(art.arrays.get("types", np.zeros(0)), dtype=np.int64).reshape(-1)
     return pts, types
 

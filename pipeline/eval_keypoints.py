@@ -87,9 +87,10 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         a = kp_stage.run(kp_cfg, prep=p)
         dt = time.perf_counter() - t0
         t_total += dt
-        pts, types = a["points"], a["types"]
+        scale = int(p.data.get("scale", 1) or 1)  # a supersampled prep (thin strokes): internal pixels
+        pts, types = np.asarray(a["points"], np.float64) / scale, a["types"]
         weights_name = a.data["weights"]
-        h = p["grey"].shape[0]
+        h = p["grey"].shape[0] // scale
         h_pad = h + (8 - h % 8)  # the authors' padded network input height
         m = match_keypoints(gpts, gtypes, pts, types, radius)
         pooled = pooled + m
@@ -103,8 +104,8 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
             from PIL import Image
 
             render_dir.mkdir(parents=True, exist_ok=True)
-            img = kp_stage.render_keypoints(p["grey"], a["heatmaps"], pts, types)
-            Image.fromarray(_with_gt(img, gpts)).save(render_dir / f"{png.stem}_keypoints.png")
+            img = kp_stage.render_keypoints(p["grey"], a["heatmaps"], pts * scale, types)
+            Image.fromarray(_with_gt(img, gpts * scale)).save(render_dir / f"{png.stem}_keypoints.png")
     n = max(len(cases), 1)
     summary = {
         "cases": len(cases),

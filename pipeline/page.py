@@ -189,7 +189,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     Returns
     -------
     dict
-        ``width``, ``height``, ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
+        ``width``, ``height`` (of the internal resolution), ``scale`` (internal pixels per drawing
+        pixel: prep's supersampling), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
         "on"}`` (SVG markup in image pixel coordinates); ``keypoints``: the editable points
         ``{"x", "y", "orig", "cur"}`` (``orig`` 0 = added, ``cur`` 0 = removed); ``stages``: the side
         panel rows; ``counts``.
@@ -199,6 +200,9 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     grey = np.asarray(prep["grey"], np.float32)
     mask = np.asarray(prep["mask"], bool)
     h, w = grey.shape
+    # A supersampled prep (thin strokes): the page shows the internal resolution; exported curves
+    # and saved edits are in the drawing's pixels (× / ÷ scale).
+    scale = int(prep.data.get("scale", 1) or 1)
     layers: list[dict] = []
 
     def add(layer_id: str, label: str, svg: str, on: bool = False) -> None:
@@ -259,8 +263,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         ex = store.load("export", keys["export"]).data.get("curves", [])
         body, ends = [], []
         for i, c in enumerate(ex):
-            body.append(f'<path d="{_polyline_d([c["points"]])}" stroke="{_hex(PALETTE[i % len(PALETTE)])}"/>')
-            pts = c["points"]
+            pts = np.asarray(c["points"], np.float64) * scale  # exported in the drawing's pixels
+            body.append(f'<path d="{_polyline_d([pts])}" stroke="{_hex(PALETTE[i % len(PALETTE)])}"/>')
             for j, p in ((0, pts[0]), (1, pts[-1])):
                 t = int(c.get("end_types", [0, 0])[j])
                 ends.append(f'<circle class="m" cx="{p[0]:.1f}" cy="{p[1]:.1f}" r="2" '
@@ -290,7 +294,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         m = store.manifest(stage, keys[stage])
         rows.append({"stage": stage, "key": keys[stage][:12], "seconds": m.get("duration_s"),
                      "peak_mb": m.get("peak_rss_mb"), "config": _config_diff(stage, m.get("config", {}))})
-    return {"width": w, "height": h, "stem": image.stem, "image": str(image), "layers": layers,
+    return {"width": w, "height": h, "scale": scale, "stem": image.stem, "image": str(image), "layers": layers,
             "keypoints": kps, "stages": rows, "counts": counts}
 
 
@@ -310,7 +314,7 @@ background:#fffc;padding:2px 6px;border:1px solid #ccc}
 _JS = r"""
 (function(){
 const D=JSON.parse(document.getElementById('pv-data').textContent);
-const W=D.width,H=D.height,svg=document.getElementById('view'),kpg=document.getElementById('kp-layer');
+const W=D.width,H=D.height,S=D.scale||1,svg=document.getElementById('view'),kpg=document.getElementById('kp-layer');
 const COL={1:'#1e5aff',3:'#ff8c00',5:'#00aa3c',0:'none'},NAME={1:'endpoint',3:'junction',5:'corner'};
 const CYCLE={1:3,3:5,5:0,0:1};let vb={x:0,y:0,w:W,h:H};const pts=D.keypoints;
 function scale(){const m=svg.getScreenCTM();return m?m.a:1}
@@ -331,9 +335,10 @@ function draw(){kpg.textContent='';const s=scale();pts.forEach((p,i)=>{
  c.appendChild(t);kpg.appendChild(c)});typeVis();count()}
 function typeVis(){[1,3,5].forEach(t=>{const on=document.getElementById('show-t'+t).checked;
  kpg.querySelectorAll('.ty'+t).forEach(c=>c.style.display=on?'':'none')})}
-function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:W,height:H,
- added:[],removed:[],retyped:[]};pts.forEach(p=>{if(p.orig===0){if(p.cur)r.added.push({x:+p.x.toFixed(1),y:+p.y.toFixed(1),type:NAME[p.cur]})}
- else if(p.cur===0)r.removed.push({x:p.x,y:p.y});else if(p.cur!==p.orig)r.retyped.push({x:p.x,y:p.y,type:NAME[p.cur]})});return r}
+function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:Math.round(W/S),
+ height:Math.round(H/S),added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S,y=p.y/S;
+ if(p.orig===0){if(p.cur)r.added.push({x:+x.toFixed(1),y:+y.toFixed(1),type:NAME[p.cur]})}
+ else if(p.cur===0)r.removed.push({x:x,y:y});else if(p.cur!==p.orig)r.retyped.push({x:x,y:y,type:NAME[p.cur]})});return r}
 function count(){const e=edits();document.getElementById('edit-count').textContent=
  e.added.length+' added, '+e.removed.length+' removed, '+e.retyped.length+' retyped'}
 function click(cx,cy,target){if(target&&target.classList&&target.classList.contains('kp')){const i=+target.dataset.i,p=pts[i];
@@ -385,7 +390,7 @@ def render_html(data: dict) -> str:
         f'</code></td></tr>' for r in data["stages"])
     counts = "".join(f"<tr><td>{esc(k)}</td><td>{esc(json.dumps(v) if isinstance(v, dict) else str(v))}</td></tr>"
                      for k, v in data["counts"].items())
-    payload = json.dumps({k: data[k] for k in ("width", "height", "stem", "image", "keypoints")})
+    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "stem", "image", "keypoints")})
     payload = payload.replace("</", "<\\/")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>polyvec: {esc(data["stem"])}</title><style>{_CSS}</style></head>

@@ -49,8 +49,11 @@ def draw_polylines(rgb: np.ndarray, polylines, scale: int, colors=None, dots: bo
 def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict):
     """Polylines and their labels for flow / select / export artifacts."""
     if stage == "export":
+        # Exported curves are in the drawing's pixels; the picture is drawn at prep's resolution
+        # (× its supersampling scale for thin strokes).
         art = store.load(stage, key)
-        return [c["points"] for c in art.data["curves"]]
+        scale = int(store.load("prep", _find_input(store, manifest, "prep")).data.get("scale", 1) or 1)
+        return [np.asarray(c["points"], np.float64) * scale for c in art.data["curves"]]
     if stage == "flow":
         art = store.load(stage, key)
         return unpack_ragged(art["curve_xy"], art["curve_xy_offsets"])

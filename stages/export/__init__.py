@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "5"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners
+STAGE_VERSION = "6"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+#                     6: curves mapped back from a supersampled prep
 
 
 @dataclass

@@ -144,8 +144,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     cfg : dict
         The ``export`` config section.
     prep, topology, flow, select : Artifact
-        Image size (``prep`` data ``height``/``width`` or its ``grey``), candidate paths (end types,
-        widths), flowed curves (topology order) and the chosen path ids.
+        Image size (``prep`` data ``height``/``width`` or its ``grey``) and internal ``scale``
+        (supersampled thin strokes: curves are divided by it), candidate paths (end types, widths),
+        flowed curves (topology order) and the chosen path ids.
 
     Returns
     -------
@@ -208,6 +209,12 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                                    params.overshoot.max_widths, params.overshoot.clearance)
     if tidy and params.corners.enabled:
         curves = join_at_corners(curves)
+    scale = float(prep.data.get("scale", 1) or 1)
+    if scale != 1:
+        # prep supersampled thin strokes: every stage so far worked at `scale` × the source resolution
+        # (internal x = scale · source x, the pixel corners aligned); the SVG is the source's.
+        curves = [dict(c, points=np.asarray(c["points"], np.float64) / scale,
+                       width=None if c.get("width") is None else float(c["width"]) / scale) for c in curves]
     # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto
     # one point: `M x y L x y`), and has no tangent for the Bézier fit.
     curves = [dict(c, corners=list(c.get("corners", []))) for c in curves

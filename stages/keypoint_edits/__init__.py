@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "1"
+STAGE_VERSION = "2"  # 2: edits scaled onto a supersampled prep's keypoints
 
 
 @dataclass

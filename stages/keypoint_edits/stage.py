@@ -204,12 +204,18 @@ def run(cfg: dict, keypoints: Artifact) -> Artifact:
     log: list[dict] = []
     if raw is not None:
         edits = validate_edits(raw)
+        # Edits are in the drawing's pixels; a supersampled prep (thin strokes) put the keypoints at
+        # `scale` × those coordinates.
+        scale = int(keypoints.data.get("scale", 1) or 1)
         if "heatmaps" in keypoints.arrays:
-            h, w = np.shape(keypoints["heatmaps"])[-2:]
+            h, w = (n // scale for n in np.shape(keypoints["heatmaps"])[-2:])
             if (edits["width"], edits["height"]) != (None, None) and (edits["width"], edits["height"]) != (w, h):
                 raise InputError(f"the edits are for a {edits['width']}×{edits['height']} drawing, "
                                  f"this one is {w}×{h}")
-        points, types, scores, log = apply_edits(points, types, scores, edits, float(cfg["match_radius"]))
+        if scale != 1:
+            edits = dict(edits, **{op: [(x * scale, y * scale) + tuple(rest) for x, y, *rest in edits[op]]
+                                   for op in ("added", "removed", "retyped")})
+        points, types, scores, log = apply_edits(points, types, scores, edits, float(cfg["match_radius"]) * scale)
     n_det = len(points) - sum(e["op"] == "added" for e in log)
     edited = {e["keypoint"] for e in log if e["op"] == "retyped"}
     kept_index = [k for k in range(len(np.asarray(keypoints["points"]).reshape(-1, 2)))

@@ -185,7 +185,8 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
-                    data={"points": data_points, "weights": name, "count": len(data_points)}, notes=notes)
+                    data={"points": data_points, "weights": name, "count": len(data_points),
+                          "scale": int(prep.data.get("scale", 1) or 1)}, notes=notes)
 
 
 def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "4"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
-#                     4: the band threshold stays clear of the paper grain
+STAGE_VERSION = "5"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+#                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled
 
 
 @dataclass
@@ -23,6 +24,24 @@ class ContrastConfig:
     low_percentile: float
     high_percentile: float
     min_contrast: float
+
+
+@dataclass
+class SupersampleConfig:
+    """``prep.supersample``: work at a higher internal resolution when the strokes are too thin."""
+
+    enabled: bool
+    below_width: float
+    target_width: float
+    max_factor: int
+    max_pixels: int
+    blur: float
+
+    def __post_init__(self) -> None:
+        if self.below_width < 0 or self.target_width <= 0 or self.max_factor < 1 or self.max_pixels < 1 \
+                or self.blur < 0:
+            raise InputError("prep.supersample: need below_width ≥ 0, target_width > 0, max_factor ≥ 1, "
+                             "max_pixels ≥ 1, blur ≥ 0")
 
 
 @dataclass
@@ -38,8 +57,10 @@ class PrepConfig:
     paper_grain_sigmas: float
     max_ink_fraction: float
     contrast: ContrastConfig
+    supersample: SupersampleConfig
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
-    "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band"),
+    "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
+                          "stroke_width", "supersample_factor", "supersample"),
 })

@@ -28,6 +28,15 @@ Choices made on purpose
   paper level (median and MAD of the stretched grey) when the grain would otherwise cross it. Why:
   faint pencil on grainy paper put 25–53 % of the page in the band (3 of 84 pencil drawings of the
   validation split; 4,002 flow paths on one 512² drawing). The reference has no such rule.
+* **Thin strokes are supersampled** (``supersample``; issue #17 item 5, not in the references).  When
+  the strokes' mean width (ink area / skeleton length of the band) is below ``below_width`` px, the
+  field cannot resolve them (a 1-px aliased line is a chain of diagonal pixel steps, whose streamlines
+  stop at every step: a drawn ellipse came out as a dozen curves) and the detector fires on the steps.
+  The contrast-normalised grey is zoomed by the integer ``s = min(max_factor, ceil(target_width /
+  width))`` (bilinear, pixel-aligned: internal ``x = s · x_source``), blurred by ``blur`` source px to
+  smooth the staircase, and banded again; every later stage works at that resolution and the export
+  maps the curves back (``scale`` in the data; ``height``/``width`` stay the source's).  Capped by
+  ``max_pixels`` (the factor drops, with a note).
 """
 
 from __future__ import annotations
@@ -269,6 +278,96 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     if ink > c.max_ink_fraction:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     h, w = grey.shape
+    notes: list[str] = []
+    scale, width = 1, None
+    if c.supersample.enabled:
+        width = stroke_width(mask)
+        scale, note = supersample_factor(width, (h, w), c.supersample)
+        if note:
+            notes.append(note)
+        if scale > 1:
+            grey = supersample(grey, scale, c.supersample.blur)
+            mask = narrow_band(grey, threshold, c.repair_passes, c.repair_neighbours,
+                               c.min_component_px * scale * scale, c.repair_max_grey)
+            notes.append(f"strokes about {width:.1f} px wide: working at {scale}x resolution "
+                         "(prep.supersample; the curves are mapped back)")
     return Artifact(arrays={"grey": grey, "mask": mask},
-                    data={"height": h, "width": w, "mode": mode, "ink_fraction": ink,
-                          "paper_level": paper, "paper_grain": grain, "band_threshold": threshold})
+                    data={"height": h, "width": w, "scale": scale, "stroke_width": width, "mode": mode,
+                          "ink_fraction": ink, "paper_level": paper, "paper_grain": grain,
+                          "band_threshold": threshold}, notes=notes)
+
+
+def stroke_width(mask: np.ndarray) -> float:
+    """Mean stroke width of a band: its area over the length of its skeleton (px).
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool (H, W) narrow band.
+
+    Returns
+    -------
+    float
+        Ink pixels per skeleton pixel (1.0 for a one-pixel line, straight or aliased); 0.0 without ink.
+    """
+    from skimage.morphology import skeletonize
+
+    area = int(mask.sum())
+    if area == 0:
+        return 0.0
+    rows, cols = np.nonzero(mask)
+    box = mask[rows.min():rows.max() + 1, cols.min():cols.max() + 1]
+    return area / max(1, int(skeletonize(box).sum()))
+
+
+def supersample_factor(width: float, shape: tuple[int, int], cfg) -> tuple[int, str | None]:
+    """The internal resolution factor for strokes ``width`` px wide (1 = none) and a note when capped.
+
+    Parameters
+    ----------
+    width : float
+        Mean stroke width (:func:`stroke_width`).
+    shape : tuple of int
+        Source image (H, W).
+    cfg : SupersampleConfig
+
+    Returns
+    -------
+    factor : int
+    note : str or None
+        Says why the factor is lower than the strokes ask for (``max_pixels``).
+    """
+    if not cfg.enabled or width <= 0 or width >= cfg.below_width:
+        return 1, None
+    want = min(cfg.max_factor, int(np.ceil(cfg.target_width / width - 1e-9)))
+    factor = want
+    while factor > 1 and shape[0] * shape[1] * factor * factor > cfg.max_pixels:
+        factor -= 1
+    note = None
+    if factor < want:
+        note = (f"strokes about {width:.1f} px wide would need {want}x resolution; prep.supersample.max_pixels "
+                f"({cfg.max_pixels}) allows {factor}x")
+    return max(1, factor), note
+
+
+def supersample(grey: np.ndarray, factor: int, blur: float) -> np.ndarray:
+    """Grey image at ``factor`` × the resolution: pixel-aligned bilinear zoom, then a Gaussian blur.
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        (H, W) in [0, 1].
+    factor : int
+        Integer zoom; internal pixel ``[i, j]`` covers source ``[i / factor, (i + 1) / factor)``.
+    blur : float
+        Gaussian σ in *source* pixels (0 = none).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (factor·H, factor·W).
+    """
+    z = ndimage.zoom(np.asarray(grey, np.float32), factor, order=1, grid_mode=True, mode="nearest")
+    if blur > 0:
+        z = ndimage.gaussian_filter(z, blur * factor, mode="nearest")
+    return np.clip(z, 0.0, 1.0).astype(np.float32)

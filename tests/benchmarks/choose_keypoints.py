@@ -67,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
             hm = predict_heatmaps(model, x, int(kcfg["tile_size"]), int(kcfg["tile_overlap"]),
                                   detection_only=name not in mains, single_pass_max=int(kcfg["single_pass_max"]))
             maps[name] = hm.astype(np.float16)
-        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps))
+        # a supersampled prep (thin strokes) gives internal pixels: keypoints are divided back
+        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, int(p.data.get("scale", 1) or 1)))
         print(f"\r{len(cases)} drawings", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     rows = []
@@ -76,11 +77,11 @@ def main(argv: list[str] | None = None) -> int:
         cfg = dict(kcfg, threshold=thr, typing=typing.split("=")[0],
                    type_classifier=typing.split("=", 1)[1] if "=" in typing else kcfg["type_classifier"])
         pooled = MatchResult()
-        for _, (gpts, gtypes), mask, maps in cases:
+        for _, (gpts, gtypes), mask, maps, scale in cases:
             hm = maps[members[0]].astype(np.float32)
             hm[0] = np.mean([maps[m][0].astype(np.float32) for m in members], axis=0)
             _, pts, types, _ = keypoints_from_heatmaps(cfg, hm, mask)
-            pooled = pooled + match_keypoints(gpts, gtypes, pts, types, 5.0)
+            pooled = pooled + match_keypoints(gpts, gtypes, pts / scale, types, 5.0)
         cf = {t: pooled.class_f1(t) for t in TYPES}
         rows.append({"ensemble": ens, "threshold": thr, "typing": typing, "f1": pooled.f1,
                      "precision": pooled.precision, "recall": pooled.recall, "accuracy": pooled.accuracy,

@@ -90,6 +90,33 @@ def test_sparse_drawing_runs_through_prep(tmp_path, cli):
     assert "blank" not in proc.stderr
 
 
+@pytest.mark.slow
+def test_thin_aliased_drawing_runs_at_a_higher_resolution_and_comes_back_in_its_pixels(tmp_path, cli):
+    """1-px aliased ink (issue #17 item 5): an ellipse and a line give two curves, not a dozen pieces."""
+    import json
+
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    img = Image.new("L", (240, 200), 255)
+    d = ImageDraw.Draw(img)
+    d.ellipse([20, 30, 220, 170], outline=110, width=1)
+    d.line([(60, 100), (180, 110)], fill=110, width=1)
+    img.save(tmp_path / "thin ellipse.png")
+    proc = cli("thin ellipse.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "working at 2x resolution" in proc.stderr
+    svg = (tmp_path / "out" / "thin ellipse.svg").read_text()
+    assert 'viewBox="0 0 240 200"' in svg
+    curves = json.loads((tmp_path / "out" / "thin ellipse.json").read_text())["curves"]
+    assert len(curves) == 2   # without prep.supersample: 9 pieces
+    pts = np.concatenate([np.asarray(c["points"]) for c in curves])
+    # On the drawing's ellipse (centre (120, 100), semi-axes 100, 70) or line, in its pixels.
+    on_ellipse = np.abs(np.hypot((pts[:, 0] - 120.5) / 100.5, (pts[:, 1] - 100.5) / 70.5) - 1) < 0.03
+    on_line = (pts[:, 0] > 55) & (pts[:, 0] < 185) & (np.abs(pts[:, 1] - (100.5 + (pts[:, 0] - 60) / 12)) < 2)
+    assert (on_ellipse | on_line).mean() > 0.98
+
+
 # What only computing needs: over a second of start-up that a run whose artifacts are all stored never pays.
 HEAVY = ("numba", "scipy", "skimage", "torch", "dask", "distributed", "networkx", "pulp")
 

@@ -190,3 +190,37 @@ def test_browser_round_trip_toggle_add_a_junction_save_and_rerun(work, tmp_path)
     before = _curve_ends(work / "out" / "polyvec-example.json")
     at = np.array([added["x"], added["y"]])
     assert np.hypot(*(ends - at).T).min() < 1.0 < 10.0 < np.hypot(*(before - at).T).min()
+
+
+def test_page_of_a_supersampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path):
+    """Thin strokes run at 2x (prep.supersample): the page shows that resolution, the edits it
+    saves are in the drawing's pixels and the re-run takes them."""
+    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+    from PIL import Image, ImageDraw
+
+    from tests.pipeline.cdp import Browser
+    img = Image.new("L", (240, 200), 255)
+    d = ImageDraw.Draw(img)
+    d.ellipse([20, 30, 220, 170], outline=110, width=1)
+    d.line([(60, 100), (180, 110)], fill=110, width=1)
+    img.save(tmp_path / "thin.png")
+    r = run_cli("thin.png", "runtime.cluster=sync", "runtime.pages=true", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    page = next(tmp_path.rglob("thin*.html"))
+    browser = Browser()
+    try:
+        browser.open(page.resolve().as_uri())
+        # the page's own pixels are 2x: the exported line's end at x = 180 drawing px is drawn at 360
+        assert browser.eval("polyvecPage.points.length") > 0
+        browser.eval("polyvecPage.points.push({x: 240, y: 61, orig: 0, cur: 3})")
+        saved = browser.eval("polyvecPage.edits()")
+    finally:
+        browser.close()
+    assert (saved["width"], saved["height"]) == (240, 200)
+    assert saved["added"] == [{"x": 120.0, "y": 30.5, "type": "junction"}]
+    (tmp_path / "thin.keypoints.json").write_text(json.dumps(saved))
+    r = run_cli("thin.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "found beside the input" in r.stderr
+    ends = _curve_ends(tmp_path / "out" / "thin.json")
+    assert np.hypot(*(ends - [120.0, 30.5]).T).min() < 1.5    # the ellipse now has curve ends at the junction

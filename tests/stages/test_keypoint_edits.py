@@ -70,3 +70,18 @@ def test_an_edit_that_matches_no_detection_is_an_error():
 def test_edits_for_another_image_size_are_refused():
     with pytest.raises(InputError, match="edits are for a 100×64 drawing, this one is 80×64"):
         run(dict(CFG, edits={"width": 100, "height": 64}), _keypoints())
+
+
+def test_edits_in_drawing_pixels_land_on_a_supersampled_prep():
+    """Thin strokes: prep works at 2x, the keypoints sit at 2x the drawing's pixels; edits do not."""
+    kp = _keypoints(h=128, w=160)
+    kp.data["scale"] = 2
+    edits = {"format": "polyvec-keypoint-edits", "version": 1, "width": 80, "height": 64,
+             "added": [{"x": 20, "y": 5, "type": "junction"}],
+             "removed": [{"x": 5.9, "y": 5.0}],         # 10.5/2 = 5.25 (the radius is 3 drawing px)
+             "retyped": [{"x": 35.0, "y": 25.0, "type": "endpoint"}]}
+    out = run(dict(CFG, edits=edits), kp)
+    np.testing.assert_allclose(out["points"], [[40.2, 30.7], [70.0, 50.0], [40, 10]], atol=1e-5)
+    np.testing.assert_array_equal(out["types"], [3, 1, 3])
+    with pytest.raises(InputError, match="160×128 drawing, this one is 80×64"):
+        run(dict(CFG, edits=dict(edits, width=160, height=128)), kp)

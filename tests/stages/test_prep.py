@@ -7,7 +7,7 @@ import io
 import numpy as np
 import pytest
 import yaml
-from PIL import Image
+from PIL import Image, ImageDraw
 
 from pipeline.cli import REPO_CONF
 from stages import prep, synthetic
@@ -177,6 +177,45 @@ def test_clean_paper_keeps_the_configured_threshold(drawing):
 
 
 def test_grain_rule_off_is_the_plain_threshold():
-    cfg = {**CFG, "paper_grain_sigmas": 0}
+    # (supersampling off: the grain specks read as thin strokes, and its blur would hide the failure)
+    cfg = {**CFG, "paper_grain_sigmas": 0, "supersample": {**CFG["supersample"], "enabled": False}}
     out = prep.run(cfg, _variants(_grainy_pencil(0.05).astype(np.float32))["png-grey"])
     assert out["mask"].mean() > 0.2        # the failure the rule exists for
+
+
+def _aliased_ellipse(width: int = 1) -> bytes:
+    """A 1-px aliased grey ellipse (no anti-aliasing: diagonal pixel steps) and a line, as PNG."""
+    img = Image.new("L", (240, 200), 255)
+    d = ImageDraw.Draw(img)
+    d.ellipse([20, 30, 220, 170], outline=110, width=width)
+    d.line([(60, 100), (180, 110)], fill=110, width=width)
+    return _encode(img, "PNG")
+
+
+def test_thin_aliased_strokes_are_supersampled_pixel_aligned():
+    out = prep.run(CFG, _aliased_ellipse())
+    assert out.data["stroke_width"] == pytest.approx(1.0, abs=0.15)
+    s = out.data["scale"]
+    assert s == 2 and out["grey"].shape == (400, 480) and out["mask"].shape == (400, 480)
+    assert (out.data["height"], out.data["width"]) == (200, 240)      # the drawing's size, for the SVG
+    assert any("2x resolution" in n for n in out.notes)
+    # Pixel-aligned: source pixel (x=120, y=30), on the ellipse's top, covers internal [240, 242) x [60, 62).
+    assert out["mask"][60:62, 240:242].all()
+    # The band is several internal pixels wide and one 8-connected piece per stroke, not a staircase.
+    from scipy import ndimage
+    assert ndimage.label(out["mask"], structure=np.ones((3, 3)))[1] == 2
+    off = prep.run({**CFG, "supersample": {**CFG["supersample"], "enabled": False}}, _aliased_ellipse())
+    assert off.data["scale"] == 1 and off["grey"].shape == (200, 240)
+
+
+def test_normal_strokes_are_not_supersampled(drawing):
+    out = prep.run(CFG, _variants(drawing.grey)["png-grey"])
+    assert out.data["scale"] == 1 and out.data["stroke_width"] >= CFG["supersample"]["below_width"]
+    assert out["grey"].shape == drawing.grey.shape and not out.notes
+
+
+def test_supersampling_is_capped_by_max_pixels_and_says_so():
+    cfg = {**CFG, "supersample": {**CFG["supersample"], "max_pixels": 100_000}}   # 4 x 48,000 px is more
+    out = prep.run(cfg, _aliased_ellipse())
+    assert out.data["scale"] == 1 and out["grey"].shape == (200, 240)
+    assert any("max_pixels" in n and "allows 1x" in n for n in out.notes)
