@@ -352,6 +352,9 @@ class RawGraph:
         int64 (E, 2) with i < j; ``edge_curve`` int64 (E,) the streamline of each edge.
     n_failed : int
         Stations where no cross-section could be taken (singular or ambiguous roots).
+    member_order : numpy.ndarray
+        The crossings ordered by streamline, then parameter (:func:`member_order`), sorted once for
+        every later walk along the streamlines (millions of rows on a large scan).
     """
 
     xy: np.ndarray
@@ -364,16 +367,24 @@ class RawGraph:
     edges: np.ndarray
     edge_curve: np.ndarray
     n_failed: int
+    member_order: np.ndarray
+
+
+def member_order(member_curve: np.ndarray, member_param: np.ndarray) -> np.ndarray:
+    """Crossings sorted by streamline id, then by parameter along it (a stable ``lexsort``)."""
+    return np.lexsort((member_param, member_curve))
 
 
 def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
-                     member_param: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     member_param: np.ndarray, order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Edges between vertices consecutive along a streamline.
 
     Parameters
     ----------
     member_vertex, member_curve, member_param : numpy.ndarray
         Crossings: vertex id, streamline id, parameter (fractional sample index) on the streamline.
+    order : numpy.ndarray, optional
+        :func:`member_order` of ``member_curve, member_param`` when already computed.
 
     Returns
     -------
@@ -382,7 +393,8 @@ def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
     edge_curve : numpy.ndarray
         int64 (E,) a streamline id that produced each edge (the lowest).
     """
-    order = np.lexsort((member_param, member_curve))
+    if order is None:
+        order = member_order(member_curve, member_param)
     v = member_vertex[order]
     c = member_curve[order]
     link = (c[1:] == c[:-1]) & (v[1:] != v[:-1])
@@ -450,6 +462,7 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
         float(max_gap), max(1, int(math.ceil(max_section_length / step))), float(ambiguity), float(tie),
         float(lane_pad))
     xy, width, root, flags, _seed, mv, mc, mp, n_fail = out
-    edges, ecurve = streamline_edges(mv, mc, mp)
+    order = member_order(mc, mp)
+    edges, ecurve = streamline_edges(mv, mc, mp, order)
     return RawGraph(xy=xy, width=width, root=root, flags=flags, member_vertex=mv, member_curve=mc,
-                    member_param=mp, edges=edges, edge_curve=ecurve, n_failed=int(n_fail))
+                    member_param=mp, edges=edges, edge_curve=ecurve, n_failed=int(n_fail), member_order=order)

@@ -66,7 +66,7 @@ def _flag_singular_curve_ends(raw: RawGraph, lines: Streamlines, reach: float) -
     flags = raw.flags.copy()
     if len(raw.member_vertex) == 0:
         return flags
-    order = np.lexsort((raw.member_param, raw.member_curve))
+    order = raw.member_order
     c = raw.member_curve[order]
     first = np.r_[True, c[1:] != c[:-1]]
     last = np.r_[c[1:] != c[:-1], True]
@@ -139,7 +139,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     np.bitwise_or.at(merged_flags, mv, flags[raw.member_vertex])
     flags = merged_flags
     mc, mp = raw.member_curve, raw.member_param
-    edges, ecurve = streamline_edges(mv, mc, mp)
+    edges, ecurve = streamline_edges(mv, mc, mp, raw.member_order)
     streamline_e, streamline_c = edges, ecurve
     stats["merged_vertices"] = int(len(raw.xy) - len(keep))
     # clean-up steps 2-6 only delete or add edges; vertices left without edges go at the end
