@@ -32,16 +32,17 @@ class SupersampleConfig:
 
     enabled: bool
     below_width: float
+    max_soft_edges: float
     target_width: float
     max_factor: int
     max_pixels: int
     blur: float
 
     def __post_init__(self) -> None:
-        if self.below_width < 0 or self.target_width <= 0 or self.max_factor < 1 or self.max_pixels < 1 \
-                or self.blur < 0:
-            raise InputError("prep.supersample: need below_width ≥ 0, target_width > 0, max_factor ≥ 1, "
-                             "max_pixels ≥ 1, blur ≥ 0")
+        if self.below_width < 0 or not 0 <= self.max_soft_edges <= 1 or self.target_width <= 0 \
+                or self.max_factor < 1 or self.max_pixels < 1 or self.blur < 0:
+            raise InputError("prep.supersample: need below_width ≥ 0, 0 ≤ max_soft_edges ≤ 1, target_width > 0, "
+                             "max_factor ≥ 1, max_pixels ≥ 1, blur ≥ 0")
 
 
 @dataclass
@@ -62,5 +63,5 @@ class PrepConfig:
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
-                          "stroke_width", "supersample_factor", "supersample"),
+                          "stroke_width", "soft_edges", "supersample_factor", "supersample"),
 })

@@ -28,10 +28,13 @@ Choices made on purpose
   paper level (median and MAD of the stretched grey) when the grain would otherwise cross it. Why:
   faint pencil on grainy paper put 25–53 % of the page in the band (3 of 84 pencil drawings of the
   validation split; 4,002 flow paths on one 512² drawing). The reference has no such rule.
-* **Thin strokes are supersampled** (``supersample``; issue #17 item 5, not in the references).  When
-  the strokes' mean width (ink area / skeleton length of the band) is below ``below_width`` px, the
-  field cannot resolve them (a 1-px aliased line is a chain of diagonal pixel steps, whose streamlines
-  stop at every step: a drawn ellipse came out as a dozen curves) and the detector fires on the steps.
+* **Thin aliased strokes are supersampled** (``supersample``; issue #17 item 5, not in the
+  references).  When the strokes' mean width (ink area / skeleton length of the band) is below
+  ``below_width`` px and their edges are hard (at most ``max_soft_edges`` of the pixels bordering the
+  band are grey: aliased ink), the field cannot resolve them (a 1-px aliased line is a chain of
+  diagonal pixel steps, whose streamlines stop at every step: a drawn ellipse came out as 9 curves).
+  Why only aliased ink: on the validation split's thinnest drawings (anti-aliased and pencil, 1.8–2.7
+  px) supersampling lowered the junction F1 (stages/DECISIONS.md), and none of them has hard edges.
   The contrast-normalised grey is zoomed by the integer ``s = min(max_factor, ceil(target_width /
   width))`` (bilinear, pixel-aligned: internal ``x = s · x_source``), blurred by ``blur`` source px to
   smooth the staircase, and banded again; every later stage works at that resolution and the export
@@ -282,7 +285,8 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     scale, width = 1, None
     if c.supersample.enabled:
         width = stroke_width(mask)
-        scale, note = supersample_factor(width, (h, w), c.supersample)
+        soft = soft_edges(grey, mask)
+        scale, note = supersample_factor(width, soft, (h, w), c.supersample)
         if note:
             notes.append(note)
         if scale > 1:
@@ -298,7 +302,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
 
 
 def stroke_width(mask: np.ndarray) -> float:
-    """Mean stroke width of a band: its area over the length of its skeleton (px).
+    """Mean stroke width of a band: its area over the length of its skeleton (px, diagonal steps √2).
 
     Parameters
     ----------
@@ -308,7 +312,8 @@ def stroke_width(mask: np.ndarray) -> float:
     Returns
     -------
     float
-        Ink pixels per skeleton pixel (1.0 for a one-pixel line, straight or aliased); 0.0 without ink.
+        Ink area per px of skeleton length (1.0 for a level one-pixel line, 0.71 for a diagonal one);
+        0.0 without ink.
     """
     from skimage.morphology import skeletonize
 
@@ -316,17 +321,47 @@ def stroke_width(mask: np.ndarray) -> float:
     if area == 0:
         return 0.0
     rows, cols = np.nonzero(mask)
-    box = mask[rows.min():rows.max() + 1, cols.min():cols.max() + 1]
-    return area / max(1, int(skeletonize(box).sum()))
+    sk = skeletonize(mask[rows.min():rows.max() + 1, cols.min():cols.max() + 1])
+    # Skeleton length: 4-neighbour links count 1, diagonal steps (no 4-path beside them) √2, so that
+    # a diagonal line is as wide as the same line drawn level (per pixel of skeleton it is 1/√2 wide).
+    straight = int((sk[:, :-1] & sk[:, 1:]).sum() + (sk[:-1, :] & sk[1:, :]).sum())
+    diagonal = int((sk[:-1, :-1] & sk[1:, 1:] & ~sk[:-1, 1:] & ~sk[1:, :-1]).sum()
+                   + (sk[:-1, 1:] & sk[1:, :-1] & ~sk[:-1, :-1] & ~sk[1:, 1:]).sum())
+    return area / max(1.0, straight + np.sqrt(2.0) * diagonal)
 
 
-def supersample_factor(width: float, shape: tuple[int, int], cfg) -> tuple[int, str | None]:
+def soft_edges(grey: np.ndarray, mask: np.ndarray) -> float:
+    """Share of the pixels bordering the band (8-neighbours outside it) whose grey is between 0.1 and 0.9.
+
+    Anti-aliased and scanned strokes fade into the paper over a pixel or two (0.05–0.96 on the
+    validation split and the 13 drawings); aliased ink (each pixel ink or paper) gives 0.
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        (H, W) contrast-normalised grey, 1 = paper.
+    mask : numpy.ndarray
+        bool (H, W) narrow band.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 0.0 without ink.
+    """
+    ring = ndimage.binary_dilation(mask, structure=np.ones((3, 3), bool)) & ~mask
+    g = np.asarray(grey)[ring]
+    return float(((g > 0.1) & (g < 0.9)).mean()) if len(g) else 0.0
+
+
+def supersample_factor(width: float, soft: float, shape: tuple[int, int], cfg) -> tuple[int, str | None]:
     """The internal resolution factor for strokes ``width`` px wide (1 = none) and a note when capped.
 
     Parameters
     ----------
     width : float
         Mean stroke width (:func:`stroke_width`).
+    soft : float
+        :func:`soft_edges` of the band: only aliased ink (at most ``max_soft_edges``) is supersampled.
     shape : tuple of int
         Source image (H, W).
     cfg : SupersampleConfig
@@ -337,7 +372,7 @@ def supersample_factor(width: float, shape: tuple[int, int], cfg) -> tuple[int, 
     note : str or None
         Says why the factor is lower than the strokes ask for (``max_pixels``).
     """
-    if not cfg.enabled or width <= 0 or width >= cfg.below_width:
+    if not cfg.enabled or width <= 0 or width >= cfg.below_width or soft > cfg.max_soft_edges:
         return 1, None
     want = min(cfg.max_factor, int(np.ceil(cfg.target_width / width - 1e-9)))
     factor = want
