@@ -179,11 +179,15 @@ def _pin_threads(alone: bool = False) -> None:
     changed in a running process: numba re-reads its environment when it compiles and refuses a
     value that differs from the thread pool it already launched.
     """
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
-    if "numba" in sys.modules:
-        numba = sys.modules["numba"]
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS if alone else 1)
+    # getattr: in-process, another task's thread may be importing torch or numba right now (the module
+    # is in sys.modules before it is initialised); that task pins its own threads when it runs.
+    set_torch = getattr(sys.modules.get("torch"), "set_num_threads", None)
+    if set_torch is not None:
+        set_torch(1)
+    numba = sys.modules.get("numba")
+    set_numba, config = getattr(numba, "set_num_threads", None), getattr(numba, "config", None)
+    if set_numba is not None and config is not None:
+        set_numba(config.NUMBA_NUM_THREADS if alone else 1)
 
 
 # Artifacts recently loaded or written by this process, by (stage, key). They are immutable (a key
@@ -193,6 +197,7 @@ def _pin_threads(alone: bool = False) -> None:
 # stage that modified its input in place would fail loudly instead of corrupting the next stage's.
 # Bounded by count and by array bytes, so a batch of large scans cannot pile up gigabytes per worker.
 _MEMO: "OrderedDict[tuple[str, str], Any]" = OrderedDict()
+_MEMO_LOCK = threading.Lock()  # the in-process scheduler runs two tasks at once (threads)
 MEMO_SIZE = 12
 MEMO_BYTES = 256 * 2**20
 
@@ -203,19 +208,21 @@ def _remember(stage: str, key: str, artifact) -> None:
             a.flags.writeable = False
     if artifact.nbytes() > MEMO_BYTES:
         return
-    _MEMO[(stage, key)] = artifact
-    _MEMO.move_to_end((stage, key))
-    total = sum(a.nbytes() for a in _MEMO.values())
-    while len(_MEMO) > MEMO_SIZE or total > MEMO_BYTES:
-        total -= _MEMO.popitem(last=False)[1].nbytes()
+    with _MEMO_LOCK:
+        _MEMO[(stage, key)] = artifact
+        _MEMO.move_to_end((stage, key))
+        total = sum(a.nbytes() for a in _MEMO.values())
+        while len(_MEMO) > MEMO_SIZE or total > MEMO_BYTES:
+            total -= _MEMO.popitem(last=False)[1].nbytes()
 
 
 def load_artifact(store: ArtifactStore, stage: str, key: str):
     """``store.load`` through this process's memo of recent artifacts."""
-    hit = _MEMO.get((stage, key))
-    if hit is not None:
-        _MEMO.move_to_end((stage, key))
-        return hit
+    with _MEMO_LOCK:
+        hit = _MEMO.get((stage, key))
+        if hit is not None:
+            _MEMO.move_to_end((stage, key))
+            return hit
     artifact = store.load(stage, key)
     _remember(stage, key, artifact)
     return artifact
@@ -499,7 +506,8 @@ def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     ``runtime.cluster: auto`` runs in-process when only one image has work left — a first run of one
     drawing, or a λ / time-step re-run (flow → select → export) — because starting worker processes
     costs more than running its keypoints beside its field gains (penguin 500×714 from an empty
-    store: 14.9 s on a local cluster, 10.9 s in-process); with two images or more, and always with a
+    store: 14.9 s on a local cluster, 10.9 s in-process; in-process, the keypoints now run in a
+    thread beside the field and graph: :func:`_run_sync`); with two images or more, and always with a
     ``scheduler_address``, it uses dask.
     """
     mode = runtime["cluster"]
@@ -515,14 +523,53 @@ def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
     return [done[i] for i in spec.inputs if i in done and done[i].status != "cached"]
 
 
+#: Tasks the in-process scheduler runs at once (threads): an image's keypoints beside its field and
+#: graph, which need only prep (torch, scipy and the graph kernels release the GIL in their work).
+SYNC_THREADS = 2
+
+
 def _run_sync(pending, store_url, batch, report) -> None:
-    for tasks in pending:
-        per = batch.results[tasks[0].image]
-        for t in tasks:
-            warmup.wait(t.stage)
-            r = execute(t, store_url, *_needed(t, per), alone=True)
-            per[t.stage] = r
-            report(r)
+    """Run the pending tasks in this process, at most :data:`SYNC_THREADS` at once, in DAG order.
+
+    A task starts when the tasks of its image that it reads have finished; earlier images first. A
+    task that starts with nothing else running or ready runs ``alone`` (numba may use its whole pool:
+    the flow). On Ctrl-C no new task starts; the running ones finish (each writes its artifact whole).
+    """
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+    order = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
+    waiting = list(order)
+    results = [batch.results[tasks[0].image] for tasks in pending]
+    stages_of = [{t.stage for t in tasks} for tasks in pending]
+    running: dict = {}
+
+    def ready(i: int, t: Task) -> bool:
+        return all(s in results[i] for s in BY_NAME[t.stage].inputs if s in stages_of[i])
+
+    def work(i: int, t: Task, alone: bool) -> TaskResult:
+        warmup.wait(t.stage)
+        return execute(t, store_url, *_needed(t, results[i]), alone=alone)
+
+    pool = ThreadPoolExecutor(max_workers=SYNC_THREADS, thread_name_prefix="polyvec-task")
+    finished_cleanly = False
+    try:
+        while waiting or running:
+            startable = [(i, t) for i, t in waiting if ready(i, t)]
+            for i, t in startable[:max(0, SYNC_THREADS - len(running))]:
+                waiting.remove((i, t))
+                alone = not running and len(startable) == 1
+                running[pool.submit(work, i, t, alone)] = (i, t)
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for fut in finished:
+                i, t = running.pop(fut)
+                r = fut.result()
+                results[i][t.stage] = r
+                report(r)
+        finished_cleanly = True
+    finally:
+        # Interrupted: return at once (the running tasks end in their threads, each writing its
+        # artifact whole, before the process exits); else every thread is idle already.
+        pool.shutdown(wait=finished_cleanly, cancel_futures=True)
 
 
 def _run_dask(pending, store_url, batch, report, client) -> None:

@@ -96,7 +96,7 @@ def start(stages: list[str]) -> list[str]:
 
 def wait(stage: str, limit_s: float = WAIT_LIMIT_S) -> None:
     """Wait (at most ``limit_s``) for the warm-up of ``stage`` if one is running; stop it past the limit."""
-    proc = _RUNNING.pop(stage, None)
+    proc = _RUNNING.get(stage)  # not popped before it ends: tasks of two images may wait on it at once
     if proc is None:
         return
     try:
@@ -104,6 +104,7 @@ def wait(stage: str, limit_s: float = WAIT_LIMIT_S) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+    _RUNNING.pop(stage, None)
 
 
 def stop() -> None:
