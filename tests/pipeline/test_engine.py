@@ -304,3 +304,42 @@ def test_an_in_process_run_lets_numba_use_its_pool_and_workers_stay_on_one_threa
     calls.clear()
     runner._pin_threads()
     assert calls == [1]
+
+
+def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_order(monkeypatch):
+    """_run_sync: two tasks at once where the DAG allows (keypoints ‖ field → graph), never a task
+    before its inputs, and one image's failure skips only what reads it."""
+    import threading
+    import time
+
+    from pipeline import runner
+    from pipeline.registry import STAGES
+
+    log, lock = [], threading.Lock()
+
+    def fake_execute(task, store_url, *upstream, alone=False):
+        with lock:
+            log.append(("start", task.stage, time.perf_counter()))
+        time.sleep(0.15)
+        status = "failed" if task.stage == "keypoint_edits" else "computed"
+        if any(u.status in ("failed", "skipped") for u in upstream):
+            status = "skipped"
+        with lock:
+            log.append(("end", task.stage, time.perf_counter()))
+        return runner.TaskResult(task.image, task.stage, task.key, status)
+
+    monkeypatch.setattr(runner, "execute", fake_execute)
+    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+    batch = runner.BatchResult(stages=[s.name for s in STAGES])
+    batch.results["a.png"] = {}
+    reported = []
+    runner._run_sync([tasks], "unused", batch, reported.append)
+    when = {(kind, stage): t for kind, stage, t in log}
+    # the keypoints and the field ran at once
+    assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
+    for s in STAGES:          # no task before its inputs ended
+        for i in s.inputs:
+            assert when[("start", s.name)] >= when[("end", i)]
+    status = {r.stage: r.status for r in reported}
+    assert status["graph"] == "computed" and status["keypoint_edits"] == "failed"
+    assert status["topology"] == status["flow"] == status["export"] == "skipped"
