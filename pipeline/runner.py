@@ -523,9 +523,21 @@ def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
     return [done[i] for i in spec.inputs if i in done and done[i].status != "cached"]
 
 
+def _prep_pixels(store_url: str, key: str) -> int | None:
+    """Pixels of a stored prep artifact's grey (from its manifest), None when it cannot be read."""
+    try:
+        shape = ArtifactStore(store_url, create=False).manifest("prep", key)["arrays"]["grey"]["shape"]
+        return int(shape[0]) * int(shape[1])
+    except Exception:  # noqa: BLE001 - no such artifact (prep failed): the caller runs one task at a time
+        return None
+
+
 #: Tasks the in-process scheduler runs at once (threads): an image's keypoints beside its field and
 #: graph, which need only prep (torch, scipy and the graph kernels release the GIL in their work).
 SYNC_THREADS = 2
+#: ... for drawings of at most this many (prep) pixels; a larger one runs a task at a time, so that
+#: its peak memory stays that of its largest stage (a 6 Mpx scan: graph ≈ 3.4 GB, + keypoints 4.0 GB).
+SYNC_PARALLEL_MAX_PIXELS = 4_000_000
 
 
 def _run_sync(pending, store_url, batch, report) -> None:
@@ -546,6 +558,17 @@ def _run_sync(pending, store_url, batch, report) -> None:
     def ready(i: int, t: Task) -> bool:
         return all(s in results[i] for s in BY_NAME[t.stage].inputs if s in stages_of[i])
 
+    sizes: dict[int, int] = {}
+
+    def parallel(i: int) -> bool:
+        """Whether image i may run two tasks at once (its prep size is known once prep is done)."""
+        if i not in sizes:
+            pixels = _prep_pixels(store_url, results[i]["prep"].key) if "prep" in results[i] else None
+            if pixels is None:
+                return False
+            sizes[i] = pixels
+        return sizes[i] <= SYNC_PARALLEL_MAX_PIXELS
+
     def work(i: int, t: Task, alone: bool) -> TaskResult:
         warmup.wait(t.stage)
         return execute(t, store_url, *_needed(t, results[i]), alone=alone)
@@ -556,6 +579,8 @@ def _run_sync(pending, store_url, batch, report) -> None:
         while waiting or running:
             startable = [(i, t) for i, t in waiting if ready(i, t)]
             for i, t in startable[:max(0, SYNC_THREADS - len(running))]:
+                if running and not all(parallel(j) for j, _ in [*running.values(), (i, t)]):
+                    break
                 waiting.remove((i, t))
                 alone = not running and len(startable) == 1
                 running[pool.submit(work, i, t, alone)] = (i, t)

@@ -330,11 +330,20 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
 
     monkeypatch.setattr(runner, "execute", fake_execute)
     tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
-    batch = runner.BatchResult(stages=[s.name for s in STAGES])
-    batch.results["a.png"] = {}
-    reported = []
-    runner._run_sync([tasks], "unused", batch, reported.append)
-    when = {(kind, stage): t for kind, stage, t in log}
+
+    def run(pixels):
+        monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
+        log.clear()
+        batch = runner.BatchResult(stages=[s.name for s in STAGES])
+        batch.results["a.png"] = {}
+        reported = []
+        runner._run_sync([tasks], "unused", batch, reported.append)
+        return {(kind, stage): t for kind, stage, t in log}, reported
+
+    # a large drawing: one task at a time (peak memory of its largest stage)
+    when, _ = run(runner.SYNC_PARALLEL_MAX_PIXELS + 1)
+    assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
+    when, reported = run(700 * 700)
     # the keypoints and the field ran at once
     assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
     for s in STAGES:          # no task before its inputs ended
