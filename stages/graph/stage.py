@@ -143,9 +143,12 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     streamline_e, streamline_c = edges, ecurve
     stats["merged_vertices"] = int(len(raw.xy) - len(keep))
     # clean-up steps 2-6 only delete or add edges; vertices left without edges go at the end
-    counts = np.zeros(len(xy), np.int64)
-    pairs = np.unique(np.stack([mv, mc], axis=1), axis=0) if len(mv) else np.zeros((0, 2), np.int64)
-    np.add.at(counts, pairs[:, 0], 1)
+    # counts[v] = distinct streamlines crossing vertex v: unique (vertex, streamline) pairs as one
+    # int64 key (a 1-D sort; the row-wise unique of millions of pairs took 1.2 s on the 2x elephant)
+    span = np.int64(mc.max()) + 1 if len(mc) else np.int64(1)
+    key = np.unique(mv.astype(np.int64) * span + mc)          # sorted as the rows (vertex, streamline)
+    pairs = np.stack([key // span, key % span], axis=1)
+    counts = np.bincount(pairs[:, 0], minlength=len(xy)).astype(np.int64)
     # 2. dangling branches into singularities
     removed = 0
     if cc.singular_branches:
