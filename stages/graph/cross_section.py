@@ -402,8 +402,10 @@ def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
     e = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
     if len(e) == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
-    # unique edges, keeping the lowest streamline id
-    o = np.lexsort((cc, e[:, 1], e[:, 0]))
+    # unique edges, keeping the lowest streamline id: `cc` is already ascending (the crossings are in
+    # streamline order), so a stable sort by the edge alone keeps it ascending within each edge (the
+    # same permutation as lexsort((cc, e1, e0)), at one int64 key instead of three)
+    o = np.argsort(e[:, 0].astype(np.int64) * (int(e[:, 1].max()) + 1) + e[:, 1], kind="stable")
     e, cc = e[o], cc[o]
     first = np.ones(len(e), bool)
     first[1:] = np.any(e[1:] != e[:-1], axis=1)

@@ -422,3 +422,25 @@ def test_scanned_drawing_crop_graph_is_centred_on_the_strokes():
     assert ok.mean() > 0.85
     deg = np.bincount(a["edges"].ravel(), minlength=len(xy))
     assert (deg == 2).mean() > 0.8
+
+
+def test_streamline_edges_equal_the_three_key_lexsort():
+    """Edges of consecutive crossings, unique, each with its lowest streamline: the one-key stable sort
+    gives what sorting by (i, j, streamline) gives, on crossings in any order and with duplicates."""
+    from stages.graph.cross_section import member_order, streamline_edges
+    rng = np.random.default_rng(7)
+    n = 5000
+    mv, mc = rng.integers(0, 300, n), rng.integers(0, 80, n)
+    mp = rng.integers(0, 40, n).astype(np.float64)            # ties in the parameter too
+    order = member_order(mc, mp)
+    v, c = mv[order], mc[order]
+    link = (c[1:] == c[:-1]) & (v[1:] != v[:-1])
+    a, b, cc = v[:-1][link], v[1:][link], c[:-1][link]
+    e = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+    o = np.lexsort((cc, e[:, 1], e[:, 0]))
+    e, cc = e[o], cc[o]
+    first = np.r_[True, np.any(e[1:] != e[:-1], axis=1)]
+    edges, ecurve = streamline_edges(mv, mc, mp)
+    np.testing.assert_array_equal(edges, e[first])
+    np.testing.assert_array_equal(ecurve, cc[first])
+    np.testing.assert_array_equal(streamline_edges(mv, mc, mp, order)[0], edges)
