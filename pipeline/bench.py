@@ -228,7 +228,9 @@ def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.
         return None
     art = store.load("keypoints", keys["keypoints"])
     # A supersampled prep (thin strokes) puts the keypoints at `scale` × the drawing's pixels.
-    scale = float(art.data.get("scale", 1) or 1)
+    from stages.prep import internal_scale
+
+    scale = internal_scale(art.data)
     pts = np.asarray(art.arrays.get("points", np.zeros((0, 2))), dtype=np.float64).reshape(-1, 2) / scale
     types = np.asarray(art.arrays.get("types", np.zeros(0)), dtype=np.int64).reshape(-1)
     return pts, types

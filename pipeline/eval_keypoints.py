@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.prep import internal_scale
 from stages.evaluate.keypoints import TYPES, MatchResult, f1_authors, f1_authors_per_class, match_keypoints, read_pts
 
 _JSON_KEYS = (("endpoints", 1), ("junctions", 3), ("corners", 5))
@@ -87,7 +88,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         a = kp_stage.run(kp_cfg, prep=p)
         dt = time.perf_counter() - t0
         t_total += dt
-        scale = int(p.data.get("scale", 1) or 1)  # a supersampled prep (thin strokes): internal pixels
+        scale = internal_scale(p.data)  # a supersampled prep (thin strokes): internal pixels
         pts, types = np.asarray(a["points"], np.float64) / scale, a["types"]
         weights_name = a.data["weights"]
         h = p["grey"].shape[0] // scale

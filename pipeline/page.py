@@ -26,6 +26,7 @@ import numpy as np
 from pipeline.registry import STAGES, default_config
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
+from stages.prep import internal_scale
 from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
@@ -202,7 +203,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     h, w = grey.shape
     # A supersampled prep (thin strokes): the page shows the internal resolution; exported curves
     # and saved edits are in the drawing's pixels (× / ÷ scale).
-    scale = int(prep.data.get("scale", 1) or 1)
+    scale = internal_scale(prep.data)
     layers: list[dict] = []
 
     def add(layer_id: str, label: str, svg: str, on: bool = False) -> None:

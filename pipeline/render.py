@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
+from stages.prep import internal_scale
 
 PALETTE = np.array([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
                     [70, 160, 160], [240, 50, 230], [128, 128, 0], [0, 0, 128], [170, 110, 40]], np.uint8)
@@ -46,14 +47,15 @@ def draw_polylines(rgb: np.ndarray, polylines, scale: int, colors=None, dots: bo
     return out.astype(np.uint8)
 
 
-def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict):
-    """Polylines and their labels for flow / select / export artifacts."""
+def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict, internal: int = 1):
+    """Polylines and their labels for flow / select / export artifacts, in prep's pixels.
+
+    ``internal``: prep's :func:`~stages.prep.internal_scale`; exported curves are in the drawing's
+    pixels, the others (and the picture) in prep's.
+    """
     if stage == "export":
-        # Exported curves are in the drawing's pixels; the picture is drawn at prep's resolution
-        # (× its supersampling scale for thin strokes).
         art = store.load(stage, key)
-        scale = int(store.load("prep", _find_input(store, manifest, "prep")).data.get("scale", 1) or 1)
-        return [np.asarray(c["points"], np.float64) * scale for c in art.data["curves"]]
+        return [np.asarray(c["points"], np.float64) * internal for c in art.data["curves"]]
     if stage == "flow":
         art = store.load(stage, key)
         return unpack_ragged(art["curve_xy"], art["curve_xy_offsets"])
@@ -105,7 +107,7 @@ def render_artifact(store: ArtifactStore, stage: str, key: str, scale: int = 2) 
 
         return render_topology(grey, art, scale=scale)
     rgb = grey_to_rgb(grey, scale)
-    return draw_polylines(rgb, _curves(store, stage, key, manifest), scale)
+    return draw_polylines(rgb, _curves(store, stage, key, manifest, internal_scale(prep.data)), scale)
 
 
 def _find_input(store: ArtifactStore, manifest: dict, stage: str) -> str:

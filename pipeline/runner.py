@@ -526,7 +526,7 @@ def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:
 def _prep_pixels(store_url: str, key: str) -> int | None:
     """Pixels of a stored prep artifact's grey (from its manifest), None when it cannot be read."""
     try:
-        shape = ArtifactStore(store_url, create=False).manifest("prep", key)["arrays"]["grey"]["shape"]
+        shape = _store(store_url).manifest("prep", key)["arrays"]["grey"]["shape"]
         return int(shape[0]) * int(shape[1])
     except Exception:  # noqa: BLE001 - no such artifact (prep failed): the caller runs one task at a time
         return None
@@ -549,8 +549,7 @@ def _run_sync(pending, store_url, batch, report) -> None:
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
-    order = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
-    waiting = list(order)
+    waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}

@@ -74,6 +74,7 @@ from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.export import ExportConfig
+from stages.prep import internal_scale
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
 from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
@@ -209,7 +210,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                                    params.overshoot.max_widths, params.overshoot.clearance)
     if tidy and params.corners.enabled:
         curves = join_at_corners(curves)
-    scale = float(prep.data.get("scale", 1) or 1)
+    scale = internal_scale(prep.data)
     if scale != 1:
         # prep supersampled thin strokes: every stage so far worked at `scale` × the source resolution
         # (internal x = scale · source x, the pixel corners aligned); the SVG is the source's.

@@ -204,11 +204,11 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     timings["widths_s"] = time.perf_counter() - t3
 
     # members of the surviving vertices
+    # `pairs` is sorted by (vertex, streamline) and `new_of` increases over the kept vertices, so the
+    # kept members are already in (new vertex, streamline) order
     pv = new_of[pairs[:, 0]] if len(pairs) else np.zeros(0, np.int64)
     sel = pv >= 0
     pv, pcurve = pv[sel], pairs[sel, 1]
-    o = np.lexsort((pcurve, pv))
-    pv, pcurve = pv[o], pcurve[o]
     bounds = np.searchsorted(pv, np.arange(len(final) + 1))
     members, members_off = pcurve.astype(np.int32), bounds.astype(np.int64)
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from stages.artifact import Artifact
 from stages.errors import InputError
+from stages.prep import internal_scale
 
 FORMAT = "polyvec-keypoint-edits"
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
@@ -206,7 +207,7 @@ def run(cfg: dict, keypoints: Artifact) -> Artifact:
         edits = validate_edits(raw)
         # Edits are in the drawing's pixels; a supersampled prep (thin strokes) put the keypoints at
         # `scale` × those coordinates.
-        scale = int(keypoints.data.get("scale", 1) or 1)
+        scale = internal_scale(keypoints.data)
         if "heatmaps" in keypoints.arrays:
             h, w = (n // scale for n in np.shape(keypoints["heatmaps"])[-2:])
             if (edits["width"], edits["height"]) != (None, None) and (edits["width"], edits["height"]) != (w, h):

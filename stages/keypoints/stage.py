@@ -38,6 +38,7 @@ from stages.keypoints import (PACKAGED_PROCEDURAL, PACKAGED_TYPE_CLASSIFIER, PAC
                               _file_hash)
 from stages.keypoints.codes import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
+from stages.prep import internal_scale
 
 # torch and the modules that need it are imported inside load_model/run, not here: rendering keypoints
 # (polyvec-inspect) and typing them from stored heatmaps need no torch, and neither does the engine's
@@ -171,7 +172,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
                                    single_pass_max=c.single_pass_max)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
-    heatmaps, points, types, scores = keypoints_from_heatmaps(cfg, heatmaps, mask)
+    heatmaps, points, types, scores = keypoints_from_heatmaps(cfg, heatmaps, mask, band=needed)
     notes = []
     cap = c.max_keypoints
     if len(points) > cap:
@@ -186,11 +187,11 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
-                          "scale": int(prep.data.get("scale", 1) or 1)}, notes=notes)
+                          "scale": internal_scale(prep.data)}, notes=notes)
 
 
-def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None,
+                            band: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Peaks of H1 on the band and their types: the stage after the network(s).
 
     Parameters
@@ -202,6 +203,9 @@ def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | 
         (4, H, W) network output (H1 possibly an ensemble mean).
     mask : numpy.ndarray or None
         bool (H, W) narrow band of the prep stage.
+    band : numpy.ndarray, optional
+        ``mask`` dilated by ``band_dilation`` (:func:`~stages.keypoints.inference.dilate_band`) when
+        the caller has it already.
 
     Returns
     -------
@@ -212,9 +216,11 @@ def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | 
     """
     from stages.keypoints.inference import dilate_band, find_keypoints
 
-    band = None
-    if cfg["restrict_to_band"] and mask is not None:
+    if not (cfg["restrict_to_band"] and mask is not None):
+        band = None
+    elif band is None:
         band = dilate_band(mask, int(cfg["band_dilation"]))
+    if band is not None:
         heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
     points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
                                            band, bool(cfg["subpixel"]))

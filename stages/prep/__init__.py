@@ -61,6 +61,13 @@ class PrepConfig:
     supersample: SupersampleConfig
 
 
+def internal_scale(data: dict) -> int:
+    """Internal pixels per drawing pixel of a prep or keypoints artifact (its ``data``): 1, or the
+    factor of a supersampled prep (thin aliased strokes), by which later stages' coordinates exceed
+    the drawing's."""
+    return int(data.get("scale", 1) or 1)
+
+
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
                           "stroke_width", "soft_edges", "supersample_factor", "supersample"),

@@ -34,6 +34,7 @@ from _common import stage_cfg  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     from pipeline.eval_keypoints import load_ground_truth
     from stages import prep as prep_stage
+    from stages.prep import internal_scale
     from stages.evaluate.keypoints import TYPES, MatchResult, match_keypoints
     from stages.keypoints import keypoints_from_heatmaps, load_model
     from stages.keypoints.inference import network_input, predict_heatmaps
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
                                   detection_only=name not in mains, single_pass_max=int(kcfg["single_pass_max"]))
             maps[name] = hm.astype(np.float16)
         # a supersampled prep (thin strokes) gives internal pixels: keypoints are divided back
-        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, int(p.data.get("scale", 1) or 1)))
+        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, internal_scale(p.data)))
         print(f"\r{len(cases)} drawings", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     rows = []
