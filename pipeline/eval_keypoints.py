@@ -88,10 +88,10 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         a = kp_stage.run(kp_cfg, prep=p)
         dt = time.perf_counter() - t0
         t_total += dt
-        scale = internal_scale(p.data)  # a supersampled prep (thin strokes): internal pixels
+        scale = internal_scale(p.data)  # a supersampled or downsampled prep: internal pixels
         pts, types = np.asarray(a["points"], np.float64) / scale, a["types"]
         weights_name = a.data["weights"]
-        h = p["grey"].shape[0] // scale
+        h = int(p.data["height"])
         h_pad = h + (8 - h % 8)  # the authors' padded network input height
         m = match_keypoints(gpts, gtypes, pts, types, radius)
         pooled = pooled + m

@@ -201,7 +201,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     grey = np.asarray(prep["grey"], np.float32)
     mask = np.asarray(prep["mask"], bool)
     h, w = grey.shape
-    # A supersampled prep (thin strokes): the page shows the internal resolution; exported curves
+    # A supersampled or downsampled prep: the page shows the internal resolution; exported curves
     # and saved edits are in the drawing's pixels (× / ÷ scale).
     scale = internal_scale(prep.data)
     layers: list[dict] = []
@@ -295,7 +295,9 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         m = store.manifest(stage, keys[stage])
         rows.append({"stage": stage, "key": keys[stage][:12], "seconds": m.get("duration_s"),
                      "peak_mb": m.get("peak_rss_mb"), "config": _config_diff(stage, m.get("config", {}))})
-    return {"width": w, "height": h, "scale": scale, "stem": image.stem, "image": str(image), "layers": layers,
+    source = (int(prep.data.get("width") or round(w / scale)), int(prep.data.get("height") or round(h / scale)))
+    return {"width": w, "height": h, "scale": scale, "source_width": source[0], "source_height": source[1],
+            "stem": image.stem, "image": str(image), "layers": layers,
             "keypoints": kps, "stages": rows, "counts": counts}
 
 
@@ -336,8 +338,8 @@ function draw(){kpg.textContent='';const s=scale();pts.forEach((p,i)=>{
  c.appendChild(t);kpg.appendChild(c)});typeVis();count()}
 function typeVis(){[1,3,5].forEach(t=>{const on=document.getElementById('show-t'+t).checked;
  kpg.querySelectorAll('.ty'+t).forEach(c=>c.style.display=on?'':'none')})}
-function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:Math.round(W/S),
- height:Math.round(H/S),added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S,y=p.y/S;
+function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:D.source_width,
+ height:D.source_height,added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S,y=p.y/S;
  if(p.orig===0){if(p.cur)r.added.push({x:+x.toFixed(1),y:+y.toFixed(1),type:NAME[p.cur]})}
  else if(p.cur===0)r.removed.push({x:x,y:y});else if(p.cur!==p.orig)r.retyped.push({x:x,y:y,type:NAME[p.cur]})});return r}
 function count(){const e=edits();document.getElementById('edit-count').textContent=
@@ -364,7 +366,7 @@ document.getElementById('fit').addEventListener('click',()=>{vb={x:0,y:0,w:W,h:H
 document.getElementById('zin').addEventListener('click',()=>{const r=svg.getBoundingClientRect();zoomAt(r.x+r.width/2,r.y+r.height/2,2)});
 document.getElementById('zout').addEventListener('click',()=>{const r=svg.getBoundingClientRect();zoomAt(r.x+r.width/2,r.y+r.height/2,0.5)});
 window.addEventListener('resize',setVB);
-window.polyvecPage={toScreen,edits,points:pts,zoomAt,setView:(x,y,w)=>{vb={x:x,y:y,w:w,h:w*H/W};setVB()}};
+window.polyvecPage={data:D,toScreen,edits,points:pts,zoomAt,setView:(x,y,w)=>{vb={x:x,y:y,w:w,h:w*H/W};setVB()}};
 draw();setVB();
 })();
 """
@@ -391,7 +393,8 @@ def render_html(data: dict) -> str:
         f'</code></td></tr>' for r in data["stages"])
     counts = "".join(f"<tr><td>{esc(k)}</td><td>{esc(json.dumps(v) if isinstance(v, dict) else str(v))}</td></tr>"
                      for k, v in data["counts"].items())
-    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "stem", "image", "keypoints")})
+    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "source_width", "source_height", "stem", "image",
+                                                 "keypoints")})
     payload = payload.replace("</", "<\\/")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>polyvec: {esc(data["stem"])}</title><style>{_CSS}</style></head>

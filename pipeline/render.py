@@ -47,7 +47,7 @@ def draw_polylines(rgb: np.ndarray, polylines, scale: int, colors=None, dots: bo
     return out.astype(np.uint8)
 
 
-def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict, internal: int = 1):
+def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict, internal: float = 1.0):
     """Polylines and their labels for flow / select / export artifacts, in prep's pixels.
 
     ``internal``: prep's :func:`~stages.prep.internal_scale`; exported curves are in the drawing's

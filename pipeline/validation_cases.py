@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -60,18 +60,10 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     list of str
         The case names written.
     """
-    from PIL import Image
-
-    from stages.config import from_section
     from stages.keypoints.training import vector_pool, vector_split
-    from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
     from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson
-    from stages.keypoints.training.labels import LabelRules
 
-    tc = cfg["train"]
-    vcfg = tc.get("vector") or {}
-    gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
-    rules = from_section(LabelRules, tc["labels"], "train.labels")
+    vcfg = cfg["train"].get("vector") or {}
     _, valid = vector_split(vcfg)
     drawings: list[tuple[str, list[np.ndarray]]] = []
     for f in valid:
@@ -90,18 +82,69 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
         placed = fit_strokes(strokes, SIZE)
         for style in ("clean", "pencil"):
             width = float(rng.choice(WIDTHS))
-            s = drawing_from_strokes(rng, placed, (SIZE, SIZE), _style_config(gcfg, style), rules,
-                                     widths=[np.full(len(p), width) for p in placed])
-            case = f"{name}_{style}"
-            Image.fromarray((np.clip(s.grey, 0, 1) * 255).round().astype(np.uint8)).save(out / f"{case}.png")
-            gt = {"size": SIZE, "width": width, "style": style,
-                  "strokes": [np.round(p, 2).tolist() for p in placed],
-                  "keypoint_rule": "stages/keypoints/training/labels.py (reference/metrics.md §4.2)"}
-            for key, code in (("endpoints", 1), ("junctions", 3), ("corners", 5)):
-                gt[key] = np.round(s.points[s.types == code], 2).tolist()
-            (out / f"{case}.json").write_text(json.dumps(gt))
-            names.append(case)
+            case = render_case(rng, placed, SIZE, width, style, cfg)
+            case.image.save(out / f"{name}_{style}.png")
+            (out / f"{name}_{style}.json").write_text(json.dumps(case.truth))
+            names.append(f"{name}_{style}")
     return names
+
+
+@dataclass
+class RenderedCase:
+    """One scored case: its drawing and its ground-truth JSON (the realvec_dev format)."""
+
+    image: "Image.Image"
+    truth: dict
+
+
+def render_case(rng: np.random.Generator, strokes: list[np.ndarray], size: int, width: float, style: str,
+                cfg: dict | None = None) -> RenderedCase:
+    """Render placed strokes as one case of the split (``size``² canvas, one stroke ``width``, a style).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Styling randomness (grain, ink level, blur).
+    strokes : list of numpy.ndarray
+        (n, 2) polylines in the canvas's pixels.
+    size : int
+        Canvas side (px).
+    width : float
+        Stroke width (px).
+    style : str
+        ``clean`` or ``pencil``.
+    cfg : dict, optional
+        The ``train`` section's parent (``train.generator``, ``train.labels``); the defaults when None.
+
+    Returns
+    -------
+    RenderedCase
+        The grey PNG image and the JSON (``size``, ``width``, ``style``, ``strokes``, ``endpoints``,
+        ``junctions``, ``corners``).
+    """
+    from PIL import Image
+
+    from stages.config import from_section
+    from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
+    from stages.keypoints.training.labels import LabelRules
+
+    if cfg is None:
+        import conf
+        from pipeline.train import compose_plain
+
+        cfg = compose_plain(Path(conf.__file__).resolve().parent, [])
+    tc = cfg["train"]
+    gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
+    rules = from_section(LabelRules, tc["labels"], "train.labels")
+    s = drawing_from_strokes(rng, strokes, (size, size), _style_config(gcfg, style), rules,
+                             widths=[np.full(len(p), width) for p in strokes])
+    image = Image.fromarray((np.clip(s.grey, 0, 1) * 255).round().astype(np.uint8))
+    gt = {"size": size, "width": width, "style": style,
+          "strokes": [np.round(p, 2).tolist() for p in strokes],
+          "keypoint_rule": "stages/keypoints/training/labels.py (reference/metrics.md §4.2)"}
+    for key, code in (("endpoints", 1), ("junctions", 3), ("corners", 5)):
+        gt[key] = np.round(s.points[s.types == code], 2).tolist()
+    return RenderedCase(image, gt)
 
 
 def main(argv: list[str] | None = None) -> int:

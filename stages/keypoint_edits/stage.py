@@ -205,11 +205,11 @@ def run(cfg: dict, keypoints: Artifact) -> Artifact:
     log: list[dict] = []
     if raw is not None:
         edits = validate_edits(raw)
-        # Edits are in the drawing's pixels; a supersampled prep (thin strokes) put the keypoints at
+        # Edits are in the drawing's pixels; a supersampled or downsampled prep put the keypoints at
         # `scale` × those coordinates.
         scale = internal_scale(keypoints.data)
-        if "heatmaps" in keypoints.arrays:
-            h, w = (n // scale for n in np.shape(keypoints["heatmaps"])[-2:])
+        h, w = keypoints.data.get("height"), keypoints.data.get("width")
+        if h is not None and w is not None:
             if (edits["width"], edits["height"]) != (None, None) and (edits["width"], edits["height"]) != (w, h):
                 raise InputError(f"the edits are for a {edits['width']}×{edits['height']} drawing, "
                                  f"this one is {w}×{h}")

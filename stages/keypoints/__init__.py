@@ -30,7 +30,7 @@ def _file_hash(path: Path) -> str:
 
 
 # 4: BatchNorms folded into the convolutions at load (heatmaps move by float rounding)
-STAGE_VERSION = "5+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
+STAGE_VERSION = "6+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
 
 
 @dataclass

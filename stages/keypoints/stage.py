@@ -182,12 +182,16 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         notes.append(f"{len(points)} keypoints, more than keypoints.max_keypoints ({cap}): kept the {cap} "
                      "strongest")
         points, types, scores = points[keep], types[keep], scores[keep]
+    # The drawing's size (prep's data; a prep made by hand has only its grey): the edits are checked against it.
+    source = [prep.data.get(k) or round(n / internal_scale(prep.data))
+              for k, n in zip(("height", "width"), np.shape(prep["grey"]))]
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
-                          "scale": internal_scale(prep.data)}, notes=notes)
+                          "scale": internal_scale(prep.data), "height": int(source[0]), "width": int(source[1])},
+                    notes=notes)
 
 
 def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None,

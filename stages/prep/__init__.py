@@ -12,8 +12,9 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "5"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
-#                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled
+STAGE_VERSION = "6"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+#                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
+#                     6: wide strokes downsampled
 
 
 @dataclass
@@ -46,6 +47,20 @@ class SupersampleConfig:
 
 
 @dataclass
+class DownsampleConfig:
+    """``prep.downsample``: work at a lower internal resolution when the strokes are wide."""
+
+    enabled: bool
+    above_width: float
+    target_width: float
+    max_factor: int
+
+    def __post_init__(self) -> None:
+        if self.above_width <= 0 or self.target_width <= 0 or self.max_factor < 1:
+            raise InputError("prep.downsample: need above_width > 0, target_width > 0, max_factor ≥ 1")
+
+
+@dataclass
 class PrepConfig:
     """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
 
@@ -59,16 +74,18 @@ class PrepConfig:
     max_ink_fraction: float
     contrast: ContrastConfig
     supersample: SupersampleConfig
+    downsample: DownsampleConfig
 
 
-def internal_scale(data: dict) -> int:
-    """Internal pixels per drawing pixel of a prep or keypoints artifact (its ``data``): 1, or the
-    factor of a supersampled prep (thin aliased strokes), by which later stages' coordinates exceed
-    the drawing's."""
-    return int(data.get("scale", 1) or 1)
+def internal_scale(data: dict) -> float:
+    """Internal pixels per drawing pixel of a prep or keypoints artifact (its ``data``): 1, the
+    factor of a supersampled prep (thin aliased strokes, 2), or 1/k of a downsampled one (wide
+    strokes); later stages' coordinates are the drawing's times this."""
+    return float(data.get("scale", 1) or 1)
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
-                          "stroke_width", "soft_edges", "supersample_factor", "supersample"),
+                          "stroke_width", "soft_edges", "supersample_factor", "supersample",
+                          "downsample_factor", "downsample"),
 })

@@ -40,6 +40,14 @@ Choices made on purpose
   smooth the staircase, and banded again; every later stage works at that resolution and the export
   maps the curves back (``scale`` in the data; ``height``/``width`` stay the source's).  Capped by
   ``max_pixels`` (the factor drops, with a note).
+* **Wide strokes are downsampled** (``downsample``; issue #14, not in the references).  When the mean
+  stroke width is at least ``above_width`` px (a high-resolution scan), the grey is shrunk by the
+  integer ``k = min(max_factor, floor(width / target_width))`` (block means; internal ``x = x_source /
+  k``) and banded again, so strokes reach the later stages about ``target_width``–``2·target_width`` px
+  wide, the widths the keypoint network was trained on (1–12 px).  Why: the field, the tracing
+  and the cross-sections cost grows with the lanes across a stroke times its length (a 4× scan took
+  157 s and 3.5 GB), not with what the drawing shows; the curves come back in the drawing's pixels
+  (``scale`` = 1/k).  Chosen on validation cases re-rendered 3× larger (stages/DECISIONS.md).
 """
 
 from __future__ import annotations
@@ -282,19 +290,32 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     h, w = grey.shape
     notes: list[str] = []
-    scale, width = 1, None
-    if c.supersample.enabled:
+    scale, width = 1.0, None
+    if c.supersample.enabled or c.downsample.enabled:
         width = stroke_width(mask)
+    if c.supersample.enabled:
         soft = soft_edges(grey, mask)
-        scale, note = supersample_factor(width, soft, (h, w), c.supersample)
+        factor, note = supersample_factor(width, soft, (h, w), c.supersample)
         if note:
             notes.append(note)
-        if scale > 1:
-            grey = supersample(grey, scale, c.supersample.blur)
-            mask = narrow_band(grey, threshold, c.repair_passes, c.repair_neighbours,
-                               c.min_component_px * scale * scale, c.repair_max_grey)
-            notes.append(f"strokes about {width:.1f} px wide: working at {scale}x resolution "
+        if factor > 1:
+            scale = float(factor)
+            grey = supersample(grey, factor, c.supersample.blur)
+            notes.append(f"strokes about {width:.1f} px wide: working at {factor}x resolution "
                          "(prep.supersample; the curves are mapped back)")
+    if scale == 1.0 and c.downsample.enabled:
+        k = downsample_factor(width, c.downsample)
+        if k > 1:
+            scale = 1.0 / k
+            grey = downsample(grey, k)
+            notes.append(f"strokes about {width:.1f} px wide: working at 1/{k} resolution "
+                         "(prep.downsample; the curves are mapped back)")
+    if scale != 1.0:
+        # The band again at the internal resolution; specks are dropped by their area in the drawing.
+        mask = narrow_band(grey, threshold, c.repair_passes, c.repair_neighbours,
+                           max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
+        if not mask.any():
+            raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
     return Artifact(arrays={"grey": grey, "mask": mask},
                     data={"height": h, "width": w, "scale": scale, "stroke_width": width, "mode": mode,
                           "ink_fraction": ink, "paper_level": paper, "paper_grain": grain,
@@ -406,3 +427,46 @@ def supersample(grey: np.ndarray, factor: int, blur: float) -> np.ndarray:
     if blur > 0:
         z = ndimage.gaussian_filter(z, blur * factor, mode="nearest")
     return np.clip(z, 0.0, 1.0).astype(np.float32)
+
+
+def downsample_factor(width: float, cfg) -> int:
+    """The integer shrink factor ``k`` for strokes ``width`` px wide (1 = none).
+
+    Parameters
+    ----------
+    width : float
+        Mean stroke width (:func:`stroke_width`).
+    cfg : DownsampleConfig
+
+    Returns
+    -------
+    int
+        ``min(max_factor, floor(width / target_width))`` when ``width ≥ above_width``, else 1.
+    """
+    if not cfg.enabled or width < cfg.above_width:
+        return 1
+    return int(max(1, min(cfg.max_factor, np.floor(width / cfg.target_width + 1e-9))))
+
+
+def downsample(grey: np.ndarray, factor: int) -> np.ndarray:
+    """Grey image at 1/``factor`` of the resolution: the mean of each ``factor``² block.
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        (H, W) in [0, 1], 1 = paper.
+    factor : int
+        Internal pixel ``[i, j]`` covers source ``[factor·i, factor·(i + 1))`` (so internal
+        ``x = x_source / factor``); the last row and column of blocks are padded with paper.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (ceil(H / factor), ceil(W / factor)).
+    """
+    g = np.asarray(grey, np.float32)
+    h, w = g.shape
+    hh, ww = -(-h // factor), -(-w // factor)
+    padded = np.ones((hh * factor, ww * factor), np.float32)
+    padded[:h, :w] = g
+    return padded.reshape(hh, factor, ww, factor).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)

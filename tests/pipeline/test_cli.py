@@ -117,6 +117,36 @@ def test_thin_aliased_drawing_runs_at_a_higher_resolution_and_comes_back_in_its_
     assert (on_ellipse | on_line).mean() > 0.98
 
 
+@pytest.mark.slow
+def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tmp_path, cli):
+    """A high-resolution scan (issue #14): 16-px strokes are vectorised at 1/4 and mapped back."""
+    import json
+
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    big = Image.new("L", (2002, 1606), 255)
+    d = ImageDraw.Draw(big)
+    d.ellipse([200, 240, 1802, 1366], outline=0, width=32)
+    d.line([(600, 803), (1402, 903)], fill=0, width=32)
+    big.resize((1001, 803), Image.LANCZOS).save(tmp_path / "wide scan.png")
+    proc = cli("wide scan.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "working at 1/4 resolution" in proc.stderr
+    svg = (tmp_path / "out" / "wide scan.svg").read_text()
+    assert 'viewBox="0 0 1001 803"' in svg
+    curves = json.loads((tmp_path / "out" / "wide scan.json").read_text())["curves"]
+    assert len(curves) == 2
+    pts = np.concatenate([np.asarray(c["points"]) for c in curves])
+    # On the ellipse's centre line (centre (500.5, 401.5), semi-axes 392.5, 273.5 after the 16-px
+    # stroke drawn inward; within ~1.5 px) or on the line, in the drawing's pixels.
+    r = np.hypot((pts[:, 0] - 500.5) / 392.5, (pts[:, 1] - 401.5) / 273.5)
+    on_ellipse = np.abs(r - 1) < 0.006
+    on_line = (pts[:, 0] > 290) & (pts[:, 0] < 711) & (np.abs(pts[:, 1] - (401.5 + (pts[:, 0] - 300) / 8)) < 3)
+    assert (on_ellipse | on_line).mean() > 0.98
+    assert all(abs(c["width"] - 16) < 2 for c in curves)      # widths in the drawing's pixels too
+
+
 # What only computing needs: over a second of start-up that a run whose artifacts are all stored never pays.
 HEAVY = ("numba", "scipy", "skimage", "torch", "dask", "distributed", "networkx", "pulp")
 

@@ -224,3 +224,36 @@ def test_page_of_a_supersampled_drawing_saves_edits_in_the_drawings_pixels(tmp_p
     assert "found beside the input" in r.stderr
     ends = _curve_ends(tmp_path / "out" / "thin.json")
     assert np.hypot(*(ends - [120.0, 30.5]).T).min() < 1.5    # the ellipse now has curve ends at the junction
+
+
+def test_page_of_a_downsampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path):
+    """Wide strokes on an odd-sized page run at 1/4 (prep.downsample): the page shows 251 x 201
+    internal pixels, the edits it saves are for the 1001 x 803 drawing, in its pixels."""
+    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+    from PIL import Image, ImageDraw
+
+    from tests.pipeline.cdp import Browser
+    big = Image.new("L", (2002, 1606), 255)
+    d = ImageDraw.Draw(big)
+    d.ellipse([200, 240, 1802, 1366], outline=0, width=32)
+    big.resize((1001, 803), Image.LANCZOS).save(tmp_path / "wide.png")
+    r = run_cli("wide.png", "runtime.cluster=sync", "runtime.pages=true", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    page = next(tmp_path.rglob("wide*.html"))
+    browser = Browser()
+    try:
+        browser.open(page.resolve().as_uri())
+        assert (browser.eval("polyvecPage.data.width"), browser.eval("polyvecPage.data.scale")) == (251, 0.25)
+        # the ellipse's top at x = 500.5, y = 128 drawing px is at (125.1, 32) on the page
+        browser.eval("polyvecPage.points.push({x: 125.125, y: 32, orig: 0, cur: 3})")
+        saved = browser.eval("polyvecPage.edits()")
+    finally:
+        browser.close()
+    assert (saved["width"], saved["height"]) == (1001, 803)
+    assert saved["added"] == [{"x": 500.5, "y": 128.0, "type": "junction"}]
+    (tmp_path / "wide.keypoints.json").write_text(json.dumps(saved))
+    r = run_cli("wide.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "found beside the input" in r.stderr
+    ends = _curve_ends(tmp_path / "out" / "wide.json")
+    assert np.hypot(*(ends - [500.5, 128.0]).T).min() < 3.0   # the ellipse now has curve ends at the junction

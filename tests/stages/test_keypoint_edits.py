@@ -14,7 +14,7 @@ def _keypoints(h: int = 64, w: int = 80) -> Artifact:
     pts = np.array([[10.5, 10.5], [40.2, 30.7], [70.0, 50.0]], np.float32)
     return Artifact(arrays={"heatmaps": np.zeros((4, h, w), np.float32), "points": pts,
                             "types": np.array([1, 3, 5], np.int8), "scores": np.array([0.9, 0.8, 0.7], np.float32)},
-                    data={"points": []})
+                    data={"points": [], "height": h, "width": w})
 
 
 CFG = {"match_radius": 3.0}
@@ -75,7 +75,7 @@ def test_edits_for_another_image_size_are_refused():
 def test_edits_in_drawing_pixels_land_on_a_supersampled_prep():
     """Thin strokes: prep works at 2x, the keypoints sit at 2x the drawing's pixels; edits do not."""
     kp = _keypoints(h=128, w=160)
-    kp.data["scale"] = 2
+    kp.data.update(scale=2, height=64, width=80)      # the drawing's size (prep's data)
     edits = {"format": "polyvec-keypoint-edits", "version": 1, "width": 80, "height": 64,
              "added": [{"x": 20, "y": 5, "type": "junction"}],
              "removed": [{"x": 5.9, "y": 5.0}],         # 10.5/2 = 5.25 (the radius is 3 drawing px)
@@ -85,3 +85,19 @@ def test_edits_in_drawing_pixels_land_on_a_supersampled_prep():
     np.testing.assert_array_equal(out["types"], [3, 1, 3])
     with pytest.raises(InputError, match="160×128 drawing, this one is 80×64"):
         run(dict(CFG, edits=dict(edits, width=160, height=128)), kp)
+
+
+def test_edits_in_drawing_pixels_land_on_a_downsampled_prep():
+    """Wide strokes: prep works at 1/4 of an odd-sized drawing (ceil: 17 x 21 internal pixels)."""
+    kp = _keypoints(h=17, w=21)
+    kp.data.update(scale=0.25, height=66, width=83)
+    kp.arrays["points"] = np.array([[2.5, 2.5], [10.0, 7.5], [17.5, 12.5]], np.float32)
+    edits = {"format": "polyvec-keypoint-edits", "version": 1, "width": 83, "height": 66,
+             "added": [{"x": 60, "y": 8, "type": "junction"}],
+             "removed": [{"x": 12.0, "y": 8.0}],        # 2.5 x 4 = 10: within the 3-px radius
+             "retyped": [{"x": 41.0, "y": 29.0, "type": "corner"}]}
+    out = run(dict(CFG, edits=edits), kp)
+    np.testing.assert_allclose(out["points"], [[10.0, 7.5], [17.5, 12.5], [15.0, 2.0]], atol=1e-5)
+    np.testing.assert_array_equal(out["types"], [5, 5, 3])
+    with pytest.raises(InputError, match="84×68 drawing, this one is 83×66"):
+        run(dict(CFG, edits=dict(edits, width=84, height=68)), kp)

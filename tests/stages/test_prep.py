@@ -231,3 +231,44 @@ def test_anti_aliased_thin_strokes_are_not_supersampled():
     assert out.data["stroke_width"] < CFG["supersample"]["below_width"]
     assert out.data["scale"] == 1 and out["grey"].shape == (200, 240)
     assert prep.soft_edges(out["grey"], out["mask"]) > CFG["supersample"]["max_soft_edges"]
+
+
+def _wide_ellipse(size: tuple[int, int] = (1001, 803), width: int = 16) -> bytes:
+    """A ``width``-px anti-aliased ellipse and line on an odd-sized page (a high-resolution scan)."""
+    w, h = size
+    big = Image.new("L", (2 * w, 2 * h), 255)
+    d = ImageDraw.Draw(big)
+    d.ellipse([200, 240, 2 * w - 200, 2 * h - 240], outline=0, width=2 * width)
+    d.line([(600, h), (2 * w - 600, h + 100)], fill=0, width=2 * width)
+    return _encode(big.resize((w, h), Image.LANCZOS), "PNG")
+
+
+def test_wide_strokes_are_downsampled_pixel_aligned():
+    out = prep.run(CFG, _wide_ellipse())
+    width = out.data["stroke_width"]
+    assert 14 < width < 19
+    k = int(width // CFG["downsample"]["target_width"])
+    assert k == 4 and out.data["scale"] == 0.25
+    # ceil(803 / 4) x ceil(1001 / 4): the last blocks padded with paper, no ink lost
+    assert out["grey"].shape == (201, 251) and out["mask"].shape == (201, 251)
+    assert (out.data["height"], out.data["width"]) == (803, 1001)
+    assert any("1/4 resolution" in n for n in out.notes)
+    # Block means: internal pixel [i, j] is the mean of source [4i, 4i + 4) x [4j, 4j + 4).
+    src = prep.run({**CFG, "downsample": {**CFG["downsample"], "enabled": False}}, _wide_ellipse())
+    assert src.data["scale"] == 1 and src["grey"].shape == (803, 1001)
+    np.testing.assert_allclose(out["grey"][50, 60], src["grey"][200:204, 240:244].mean(), atol=1e-5)
+    np.testing.assert_allclose(out["grey"][-1, -1], (src["grey"][800:803, 1000].sum() + 13) / 16, atol=1e-5)
+    # The band keeps the strokes: about a quarter of their width, each one piece.
+    from scipy import ndimage
+    assert ndimage.label(out["mask"], structure=np.ones((3, 3)))[1] == 2     # the ellipse, the line inside
+    assert 3 < prep.stroke_width(out["mask"]) < 5.5
+
+
+def test_strokes_below_the_downsampling_width_keep_the_resolution():
+    out = prep.run(CFG, _wide_ellipse(width=5))
+    assert out.data["stroke_width"] < CFG["downsample"]["above_width"]
+    assert out.data["scale"] == 1 and out["grey"].shape == (803, 1001) and not out.notes
+    from stages.config import from_section
+    c = from_section(prep.DownsampleConfig, CFG["downsample"], "prep.downsample")
+    # k = floor(width / target_width), from above_width on, at most max_factor
+    assert [prep.downsample_factor(w, c) for w in (6.9, 7.0, 10.4, 10.5, 15.0, 100.0)] == [1, 2, 2, 3, 4, 4]
