@@ -11,12 +11,14 @@ Rows:
 - empty store, kernels compiled: the default run (``runtime.cluster=auto``) and ``runtime.cluster=sync``;
 - every artifact a hit; a λ re-run (``flow.lam=0.5``: flow → select → export);
 - the drawing upscaled 2× and 4× (bicubic), with per-stage seconds and peak MB (the linear-cost curve);
+  their strokes are wide enough for ``prep.downsample`` (7.9 and 15.2 px), so they run at 1/2 and 1/4;
+  ``--full-resolution`` adds the same rows with ``prep.downsample.enabled=false`` (the stages' own curve);
 - 8 drawings at 512² (the 13 drawings' first 8, fitted into 512×512 on white) with 1 and 2 workers of
   a local cluster (``runtime.cluster=local``), and the speed-up.
 
 Usage::
 
-    python tests/benchmarks/bench_speed.py [--image PNG] [--skip-batch] [--skip-scale]
+    python tests/benchmarks/bench_speed.py [--image PNG] [--skip-batch] [--skip-scale] [--full-resolution]
 """
 
 from __future__ import annotations
@@ -94,6 +96,8 @@ def main() -> None:
     ap.add_argument("--image", type=Path, default=STAND_IN)
     ap.add_argument("--skip-batch", action="store_true")
     ap.add_argument("--skip-scale", action="store_true")
+    ap.add_argument("--full-resolution", action="store_true",
+                    help="also the scaled rows with prep.downsample.enabled=false")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -113,6 +117,9 @@ def main() -> None:
                 big = scaled(args.image, factor, tmp)
                 row(f"×{factor} ({w * factor}×{h * factor}), empty store",
                     polyvec([str(big)], out, str(tmp / f"sx{factor}"), env=env))
+                if args.full_resolution:
+                    row(f"×{factor}, same, prep.downsample.enabled=false",
+                        polyvec([str(big)], out, str(tmp / f"fx{factor}"), "prep.downsample.enabled=false", env=env))
         if not args.skip_batch:
             drawings = sorted(SHARED.glob("*/*.png"))[:8]
             folder = tmp / "batch"
