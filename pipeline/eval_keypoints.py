@@ -4,7 +4,8 @@ Usage::
 
     python -m pipeline.eval_keypoints DIR [--weights PATH] [--ensemble [PATH ...]] [--threshold 0.5] [--min-distance 3]
                                           [--typing valence|argmax] [--type-classifier NPZ]
-                                          [--limit N] [--render OUT_DIR] [--json OUT.json]
+                                          [--precision fp32|bf16|auto] [--limit N] [--render OUT_DIR]
+                                          [--json OUT.json]
 
 ``DIR`` holds ``<name>.png`` drawings, each with ``<name>.json`` (the realvec_dev format: lists
 ``endpoints``, ``junctions``, ``corners`` of (x, y)) or ``<name>.pts`` (the authors' format: ``N`` then
@@ -149,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--typing", choices=("valence", "argmax"), default=None,
                     help="keypoint typing (default: conf/keypoints/default.yaml)")
     ap.add_argument("--type-classifier", default=None, help="type classifier .npz (default: the packaged one)")
+    ap.add_argument("--precision", choices=("fp32", "bf16", "auto"), default=None,
+                    help="network arithmetic (keypoints.precision)")
     ap.add_argument("--radius", type=float, default=5.0, help="one-to-one matching radius, px")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--render", type=Path, default=None, help="write overlays here")
@@ -160,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     res = evaluate_folder(args.folder, {"weights": args.weights, "detection_ensemble": args.ensemble,
                                         "threshold": args.threshold,
                                         "min_distance": args.min_distance, "typing": args.typing,
-                                        "type_classifier": args.type_classifier}, args.radius, args.limit, args.render)
+                                        "type_classifier": args.type_classifier, "precision": args.precision},
+                          args.radius, args.limit, args.render)
     s = res["summary"]
     if s["cases"] == 0:
         print(f"error: no PNG with a .json or .pts ground truth in {args.folder}", file=sys.stderr)

@@ -52,10 +52,13 @@ class KeypointsConfig:
     tile_overlap: int
     max_keypoints: int
     torch_threads: int
+    precision: str
 
     def __post_init__(self) -> None:
         if self.typing not in ("valence", "argmax"):
             raise InputError(f"typing must be 'valence' or 'argmax', got {self.typing!r}")
+        if self.precision not in ("fp32", "bf16", "auto"):
+            raise InputError(f"keypoints.precision must be 'fp32', 'bf16' or 'auto', got {self.precision!r}")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {

@@ -71,7 +71,7 @@ def _tile_starts(n: int, tile: int, step: int) -> list[int]:
 
 def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int,
                      detection_only: bool = False, needed: np.ndarray | None = None,
-                     single_pass_max: int | None = None) -> np.ndarray:
+                     single_pass_max: int | None = None, bf16: bool = False) -> np.ndarray:
     """Heatmaps H1..H4 of a normalised drawing, tiled with blended overlaps when large.
 
     Parameters
@@ -93,6 +93,8 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
         caller keeps has the same value as without skipping (a pixel of a skipped tile is not
         needed, so only unneeded pixels lose a tile's share of the blend).  Line drawings are
         sparse: most tiles of a large scan hold no stroke.
+    bf16 : bool
+        Run the network under bfloat16 autocast (the outputs come back as float32).
 
     Returns
     -------
@@ -107,7 +109,7 @@ def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile
     overlap = min(tile_overlap // m * m, tile - m)
     t = torch.from_numpy(xp)[None, None]
     net = model.detect if detection_only else (lambda a: model(a)[0])
-    with torch.inference_mode():
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         whole = max(tile, single_pass_max or 0)
         if hp <= whole and wp <= whole:
             out = net(t)[0].float().numpy()
@@ -188,3 +190,14 @@ def dilate_band(mask: np.ndarray, radius: int) -> np.ndarray:
         return mask.astype(bool)
     yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
     return ndimage.binary_dilation(mask, structure=(xx * xx + yy * yy) <= radius * radius)
+
+
+def use_bf16(precision: str) -> bool:
+    """Whether ``keypoints.precision`` means bfloat16 on this machine (``auto``: where the CPU has
+    native bf16 instructions; emulated bf16 is slower than float32)."""
+    if precision == "auto":
+        import torch
+
+        probe = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
+        return bool(probe and probe())
+    return precision == "bf16"

@@ -147,7 +147,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     """
     import torch
 
-    from stages.keypoints.inference import dilate_band, network_input, predict_heatmaps
+    from stages.keypoints.inference import dilate_band, network_input, predict_heatmaps, use_bf16
 
     c = from_section(KeypointsConfig, cfg, "keypoints")
     torch.set_num_threads(c.torch_threads)
@@ -160,7 +160,8 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     mask = np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None
     # Tiles with no pixel of the dilated band are not run: keypoints_from_heatmaps zeroes them anyway.
     needed = dilate_band(mask, c.band_dilation) if (c.restrict_to_band and mask is not None) else None
-    heatmaps = predict_heatmaps(model, x, *tiles, needed=needed, single_pass_max=c.single_pass_max)
+    bf16 = use_bf16(c.precision)
+    heatmaps = predict_heatmaps(model, x, *tiles, needed=needed, single_pass_max=c.single_pass_max, bf16=bf16)
     ensemble = list(c.detection_ensemble)
     if ensemble:
         # Detection ensemble: H1 is the mean over the networks; the class maps (H2..H4), which the
@@ -169,7 +170,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         for w in ensemble:
             other, other_name = load_model(w)
             h1 += predict_heatmaps(other, x, *tiles, detection_only=True, needed=needed,
-                                   single_pass_max=c.single_pass_max)[0]
+                                   single_pass_max=c.single_pass_max, bf16=bf16)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
     heatmaps, points, types, scores = keypoints_from_heatmaps(cfg, heatmaps, mask, band=needed)
@@ -190,7 +191,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
-                          "scale": internal_scale(prep.data), "height": int(source[0]), "width": int(source[1])},
+                          "precision": "bf16" if bf16 else "fp32", "scale": internal_scale(prep.data), "height": int(source[0]), "width": int(source[1])},
                     notes=notes)
 
 

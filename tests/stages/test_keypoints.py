@@ -455,3 +455,25 @@ def test_missing_packaged_weights_are_an_error_not_a_random_network(tmp_path, mo
     monkeypatch.setattr(kp, "_MODELS", {})
     with pytest.raises(InputError, match="packaged weights file .* is missing"):
         load_model("packaged")
+
+
+def test_bf16_arithmetic_finds_the_fp32_keypoints():
+    """keypoints.precision=bf16 (bfloat16 autocast): the same keypoints as fp32 on the bundled example
+    drawing, within a pixel and of the same types; the artifact says which arithmetic ran."""
+    from stages import prep as prep_stage
+    from stages.keypoints.inference import use_bf16
+
+    png = synthetic.example_drawing().png_bytes()
+    p = prep_stage.run(yaml.safe_load((CONF / "prep" / "default.yaml").read_text()), png)
+    fp32 = run(dict(_cfg(), precision="fp32"), prep=p)
+    bf16 = run(dict(_cfg(), precision="bf16"), prep=p)
+    assert (fp32.data["precision"], bf16.data["precision"]) == ("fp32", "bf16")
+    assert np.abs(fp32["heatmaps"] - bf16["heatmaps"]).max() > 0      # it did run in bf16
+    assert len(fp32["points"]) == len(bf16["points"]) > 5
+    d = np.linalg.norm(fp32["points"][:, None] - bf16["points"][None], axis=2)
+    nearest = d.argmin(1)
+    assert d.min(1).max() < 1.0 and np.array_equal(fp32["types"], bf16["types"][nearest])
+    auto = run(dict(_cfg(), precision="auto"), prep=p)
+    assert auto.data["precision"] == ("bf16" if use_bf16("auto") else "fp32")
+    with pytest.raises(InputError, match="precision"):
+        run(dict(_cfg(), precision="half"), prep=p)
