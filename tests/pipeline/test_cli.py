@@ -90,11 +90,26 @@ def test_sparse_drawing_runs_through_prep(tmp_path, cli):
     assert "blank" not in proc.stderr
 
 
+def _resampled_run(tmp_path, cli, name: str, img, note: str):
+    """Run the CLI on ``img`` saved as ``name``: its exported curves (drawing pixels) after checking
+    the console note and that the SVG's viewBox is the drawing's size."""
+    import json
+
+    import numpy as np
+
+    img.save(tmp_path / name)
+    proc = cli(name, "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert note in proc.stderr
+    stem = name.rsplit(".", 1)[0]
+    assert f'viewBox="0 0 {img.width} {img.height}"' in (tmp_path / "out" / f"{stem}.svg").read_text()
+    curves = json.loads((tmp_path / "out" / f"{stem}.json").read_text())["curves"]
+    return curves, np.concatenate([np.asarray(c["points"]) for c in curves])
+
+
 @pytest.mark.slow
 def test_thin_aliased_drawing_runs_at_a_higher_resolution_and_comes_back_in_its_pixels(tmp_path, cli):
     """1-px aliased ink (issue #17 item 5): an ellipse and a line give two curves, not a dozen pieces."""
-    import json
-
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -102,15 +117,8 @@ def test_thin_aliased_drawing_runs_at_a_higher_resolution_and_comes_back_in_its_
     d = ImageDraw.Draw(img)
     d.ellipse([20, 30, 220, 170], outline=110, width=1)
     d.line([(60, 100), (180, 110)], fill=110, width=1)
-    img.save(tmp_path / "thin ellipse.png")
-    proc = cli("thin ellipse.png", "runtime.cluster=sync", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    assert "working at 2x resolution" in proc.stderr
-    svg = (tmp_path / "out" / "thin ellipse.svg").read_text()
-    assert 'viewBox="0 0 240 200"' in svg
-    curves = json.loads((tmp_path / "out" / "thin ellipse.json").read_text())["curves"]
+    curves, pts = _resampled_run(tmp_path, cli, "thin ellipse.png", img, "working at 2x resolution")
     assert len(curves) == 2   # without prep.supersample: 9 pieces
-    pts = np.concatenate([np.asarray(c["points"]) for c in curves])
     # On the drawing's ellipse (centre (120, 100), semi-axes 100, 70) or line, in its pixels.
     on_ellipse = np.abs(np.hypot((pts[:, 0] - 120.5) / 100.5, (pts[:, 1] - 100.5) / 70.5) - 1) < 0.03
     on_line = (pts[:, 0] > 55) & (pts[:, 0] < 185) & (np.abs(pts[:, 1] - (100.5 + (pts[:, 0] - 60) / 12)) < 2)
@@ -120,8 +128,6 @@ def test_thin_aliased_drawing_runs_at_a_higher_resolution_and_comes_back_in_its_
 @pytest.mark.slow
 def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tmp_path, cli):
     """A high-resolution scan (issue #14): 16-px strokes are vectorised at 1/4 and mapped back."""
-    import json
-
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -129,15 +135,9 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
     d = ImageDraw.Draw(big)
     d.ellipse([200, 240, 1802, 1366], outline=0, width=32)
     d.line([(600, 803), (1402, 903)], fill=0, width=32)
-    big.resize((1001, 803), Image.LANCZOS).save(tmp_path / "wide scan.png")
-    proc = cli("wide scan.png", "runtime.cluster=sync", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    assert "working at 1/4 resolution" in proc.stderr
-    svg = (tmp_path / "out" / "wide scan.svg").read_text()
-    assert 'viewBox="0 0 1001 803"' in svg
-    curves = json.loads((tmp_path / "out" / "wide scan.json").read_text())["curves"]
+    img = big.resize((1001, 803), Image.LANCZOS)
+    curves, pts = _resampled_run(tmp_path, cli, "wide scan.png", img, "working at 1/4 resolution")
     assert len(curves) == 2
-    pts = np.concatenate([np.asarray(c["points"]) for c in curves])
     # On the ellipse's centre line (centre (500.5, 401.5), semi-axes 392.5, 273.5 after the 16-px
     # stroke drawn inward; within ~1.5 px) or on the line, in the drawing's pixels.
     r = np.hypot((pts[:, 0] - 500.5) / 392.5, (pts[:, 1] - 401.5) / 273.5)

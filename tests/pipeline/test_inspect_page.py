@@ -192,68 +192,56 @@ def test_browser_round_trip_toggle_add_a_junction_save_and_rerun(work, tmp_path)
     assert np.hypot(*(ends - at).T).min() < 1.0 < 10.0 < np.hypot(*(before - at).T).min()
 
 
-def test_page_of_a_supersampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path):
-    """Thin strokes run at 2x (prep.supersample): the page shows that resolution, the edits it
-    saves are in the drawing's pixels and the re-run takes them."""
-    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+def _thin_drawing(path):
+    """240 x 200, 1-px aliased ellipse and line: prep.supersample runs it at 2x."""
     from PIL import Image, ImageDraw
 
-    from tests.pipeline.cdp import Browser
     img = Image.new("L", (240, 200), 255)
     d = ImageDraw.Draw(img)
     d.ellipse([20, 30, 220, 170], outline=110, width=1)
     d.line([(60, 100), (180, 110)], fill=110, width=1)
-    img.save(tmp_path / "thin.png")
-    r = run_cli("thin.png", "runtime.cluster=sync", "runtime.pages=true", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr[-2000:]
-    page = next(tmp_path.rglob("thin*.html"))
-    browser = Browser()
-    try:
-        browser.open(page.resolve().as_uri())
-        # the page's own pixels are 2x: the exported line's end at x = 180 drawing px is drawn at 360
-        assert browser.eval("polyvecPage.points.length") > 0
-        browser.eval("polyvecPage.points.push({x: 240, y: 61, orig: 0, cur: 3})")
-        saved = browser.eval("polyvecPage.edits()")
-    finally:
-        browser.close()
-    assert (saved["width"], saved["height"]) == (240, 200)
-    assert saved["added"] == [{"x": 120.0, "y": 30.5, "type": "junction"}]
-    (tmp_path / "thin.keypoints.json").write_text(json.dumps(saved))
-    r = run_cli("thin.png", "runtime.cluster=sync", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr[-2000:]
-    assert "found beside the input" in r.stderr
-    ends = _curve_ends(tmp_path / "out" / "thin.json")
-    assert np.hypot(*(ends - [120.0, 30.5]).T).min() < 1.5    # the ellipse now has curve ends at the junction
+    img.save(path)
 
 
-def test_page_of_a_downsampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path):
-    """Wide strokes on an odd-sized page run at 1/4 (prep.downsample): the page shows 251 x 201
-    internal pixels, the edits it saves are for the 1001 x 803 drawing, in its pixels."""
-    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+def _wide_drawing(path):
+    """1001 x 803, a 16-px ellipse: prep.downsample runs it at 1/4 (251 x 201 internal pixels)."""
     from PIL import Image, ImageDraw
 
-    from tests.pipeline.cdp import Browser
     big = Image.new("L", (2002, 1606), 255)
-    d = ImageDraw.Draw(big)
-    d.ellipse([200, 240, 1802, 1366], outline=0, width=32)
-    big.resize((1001, 803), Image.LANCZOS).save(tmp_path / "wide.png")
-    r = run_cli("wide.png", "runtime.cluster=sync", "runtime.pages=true", cwd=tmp_path)
+    ImageDraw.Draw(big).ellipse([200, 240, 1802, 1366], outline=0, width=32)
+    big.resize((1001, 803), Image.LANCZOS).save(path)
+
+
+@pytest.mark.parametrize("draw, size, scale, on_page, in_drawing, near", [
+    # the ellipse's top at (120, 30.5) drawing px is at (240, 61) on the 2x page
+    (_thin_drawing, (240, 200), 2.0, (240, 61), (120.0, 30.5), 1.5),
+    # the ellipse's top at (500.5, 128) drawing px is at (125.125, 32) on the 1/4 page; the old page
+    # divided its own size by the scale and saved edits for a 1004 x 804 drawing
+    (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0),
+], ids=["supersampled", "downsampled"])
+def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path, draw, size, scale, on_page,
+                                                                        in_drawing, near):
+    """Thin strokes run at 2x (prep.supersample), wide ones at 1/4 (prep.downsample): the page shows
+    that resolution, the edits it saves are for the drawing, in its pixels, and the re-run takes them."""
+    pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
+    from tests.pipeline.cdp import Browser
+    draw(tmp_path / "drawing.png")
+    r = run_cli("drawing.png", "runtime.cluster=sync", "runtime.pages=true", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    page = next(tmp_path.rglob("wide*.html"))
+    page = next(tmp_path.rglob("drawing*.html"))
     browser = Browser()
     try:
         browser.open(page.resolve().as_uri())
-        assert (browser.eval("polyvecPage.data.width"), browser.eval("polyvecPage.data.scale")) == (251, 0.25)
-        # the ellipse's top at x = 500.5, y = 128 drawing px is at (125.1, 32) on the page
-        browser.eval("polyvecPage.points.push({x: 125.125, y: 32, orig: 0, cur: 3})")
+        assert browser.eval("polyvecPage.data.scale") == scale
+        browser.eval(f"polyvecPage.points.push({{x: {on_page[0]}, y: {on_page[1]}, orig: 0, cur: 3}})")
         saved = browser.eval("polyvecPage.edits()")
     finally:
         browser.close()
-    assert (saved["width"], saved["height"]) == (1001, 803)
-    assert saved["added"] == [{"x": 500.5, "y": 128.0, "type": "junction"}]
-    (tmp_path / "wide.keypoints.json").write_text(json.dumps(saved))
-    r = run_cli("wide.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert (saved["width"], saved["height"]) == size
+    assert saved["added"] == [{"x": in_drawing[0], "y": in_drawing[1], "type": "junction"}]
+    (tmp_path / "drawing.keypoints.json").write_text(json.dumps(saved))
+    r = run_cli("drawing.png", "runtime.cluster=sync", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "found beside the input" in r.stderr
-    ends = _curve_ends(tmp_path / "out" / "wide.json")
-    assert np.hypot(*(ends - [500.5, 128.0]).T).min() < 3.0   # the ellipse now has curve ends at the junction
+    ends = _curve_ends(tmp_path / "out" / "drawing.json")
+    assert np.hypot(*(ends - in_drawing).T).min() < near    # the ellipse now has curve ends at the junction
