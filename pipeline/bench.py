@@ -227,7 +227,7 @@ def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.
     if "keypoints" not in keys:
         return None
     art = store.load("keypoints", keys["keypoints"])
-    # A supersampled prep (thin strokes) puts the keypoints at `scale` × the drawing's pixels.
+    # A supersampled or downsampled prep puts the keypoints at `scale` × the drawing's pixels.
     from stages.prep import internal_scale
 
     scale = internal_scale(art.data)

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.prep import internal_scale
 from stages.evaluate.keypoints import TYPES, MatchResult, f1_authors, f1_authors_per_class, match_keypoints, read_pts
+from stages.prep import internal_scale
 
 _JSON_KEYS = (("endpoints", 1), ("junctions", 3), ("corners", 5))
 

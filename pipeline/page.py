@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.registry import STAGES, default_config
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
-from stages.prep import internal_scale
+from stages.prep import internal_scale, source_size
 from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
@@ -295,8 +295,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         m = store.manifest(stage, keys[stage])
         rows.append({"stage": stage, "key": keys[stage][:12], "seconds": m.get("duration_s"),
                      "peak_mb": m.get("peak_rss_mb"), "config": _config_diff(stage, m.get("config", {}))})
-    source = (int(prep.data.get("width") or round(w / scale)), int(prep.data.get("height") or round(h / scale)))
-    return {"width": w, "height": h, "scale": scale, "source_width": source[0], "source_height": source[1],
+    source_h, source_w = source_size(prep.data, (h, w))
+    return {"width": w, "height": h, "scale": scale, "source_width": source_w, "source_height": source_h,
             "stem": image.stem, "image": str(image), "layers": layers,
             "keypoints": kps, "stages": rows, "counts": counts}
 

@@ -98,7 +98,7 @@ class RenderedCase:
 
 
 def render_case(rng: np.random.Generator, strokes: list[np.ndarray], size: int, width: float, style: str,
-                cfg: dict | None = None) -> RenderedCase:
+                cfg: dict) -> RenderedCase:
     """Render placed strokes as one case of the split (``size``² canvas, one stroke ``width``, a style).
 
     Parameters
@@ -113,8 +113,8 @@ def render_case(rng: np.random.Generator, strokes: list[np.ndarray], size: int, 
         Stroke width (px).
     style : str
         ``clean`` or ``pencil``.
-    cfg : dict, optional
-        The ``train`` section's parent (``train.generator``, ``train.labels``); the defaults when None.
+    cfg : dict
+        The ``train`` section's parent (``train.generator``, ``train.labels``).
 
     Returns
     -------
@@ -128,11 +128,6 @@ def render_case(rng: np.random.Generator, strokes: list[np.ndarray], size: int, 
     from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes
     from stages.keypoints.training.labels import LabelRules
 
-    if cfg is None:
-        import conf
-        from pipeline.train import compose_plain
-
-        cfg = compose_plain(Path(conf.__file__).resolve().parent, [])
     tc = cfg["train"]
     gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
     rules = from_section(LabelRules, tc["labels"], "train.labels")

@@ -74,11 +74,11 @@ from stages.artifact import Artifact, unpack_ragged
 from stages.config import from_section
 from stages.errors import InputError
 from stages.export import ExportConfig
-from stages.prep import internal_scale
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
 from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
+from stages.prep import internal_scale
 
 
 # ---------------------------------------------------------------------------------------------
@@ -212,8 +212,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = join_at_corners(curves)
     scale = internal_scale(prep.data)
     if scale != 1:
-        # prep supersampled thin strokes: every stage so far worked at `scale` × the source resolution
-        # (internal x = scale · source x, the pixel corners aligned); the SVG is the source's.
+        # prep supersampled thin or downsampled wide strokes: every stage so far worked at `scale` × the
+        # source resolution (internal x = scale · source x, the pixel corners aligned); the SVG is the source's.
         curves = [dict(c, points=np.asarray(c["points"], np.float64) / scale,
                        width=None if c.get("width") is None else float(c["width"]) / scale) for c in curves]
     # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto

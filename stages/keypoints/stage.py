@@ -38,7 +38,7 @@ from stages.keypoints import (PACKAGED_PROCEDURAL, PACKAGED_TYPE_CLASSIFIER, PAC
                               _file_hash)
 from stages.keypoints.codes import TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
-from stages.prep import internal_scale
+from stages.prep import internal_scale, source_size
 
 # torch and the modules that need it are imported inside load_model/run, not here: rendering keypoints
 # (polyvec-inspect) and typing them from stored heatmaps need no torch, and neither does the engine's
@@ -183,16 +183,14 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         notes.append(f"{len(points)} keypoints, more than keypoints.max_keypoints ({cap}): kept the {cap} "
                      "strongest")
         points, types, scores = points[keep], types[keep], scores[keep]
-    # The drawing's size (prep's data; a prep made by hand has only its grey): the edits are checked against it.
-    source = [prep.data.get(k) or round(n / internal_scale(prep.data))
-              for k, n in zip(("height", "width"), np.shape(prep["grey"]))]
+    height, width = source_size(prep.data, grey.shape)    # the drawing's: keypoint edits are checked against it
     data_points = [{"x": float(p[0]), "y": float(p[1]), "type": int(t), "score": float(s)}
                    for p, t, s in zip(points, types, scores)]
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
-                          "precision": "bf16" if bf16 else "fp32", "scale": internal_scale(prep.data), "height": int(source[0]), "width": int(source[1])},
-                    notes=notes)
+                          "precision": "bf16" if bf16 else "fp32", "scale": internal_scale(prep.data),
+                          "height": height, "width": width}, notes=notes)
 
 
 def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | None,

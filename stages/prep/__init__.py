@@ -84,6 +84,13 @@ def internal_scale(data: dict) -> float:
     return float(data.get("scale", 1) or 1)
 
 
+def source_size(data: dict, internal_shape: tuple[int, int]) -> tuple[int, int]:
+    """(height, width) of the drawing itself: prep's ``height``/``width``, else (a prep made by hand,
+    with only its grey) the internal shape divided by :func:`internal_scale`."""
+    scale = internal_scale(data)
+    return tuple(int(data.get(k) or round(n / scale)) for k, n in zip(("height", "width"), internal_shape[-2:]))
+
+
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
                           "stroke_width", "soft_edges", "supersample_factor", "supersample",

@@ -34,10 +34,10 @@ from _common import stage_cfg  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     from pipeline.eval_keypoints import load_ground_truth
     from stages import prep as prep_stage
-    from stages.prep import internal_scale
     from stages.evaluate.keypoints import TYPES, MatchResult, match_keypoints
     from stages.keypoints import keypoints_from_heatmaps, load_model
     from stages.keypoints.inference import network_input, predict_heatmaps
+    from stages.prep import internal_scale
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("cases", type=Path)
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
             hm = predict_heatmaps(model, x, int(kcfg["tile_size"]), int(kcfg["tile_overlap"]),
                                   detection_only=name not in mains, single_pass_max=int(kcfg["single_pass_max"]))
             maps[name] = hm.astype(np.float16)
-        # a supersampled prep (thin strokes) gives internal pixels: keypoints are divided back
+        # a supersampled or downsampled prep gives internal pixels: keypoints are divided back
         cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, internal_scale(p.data)))
         print(f"\r{len(cases)} drawings", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)

@@ -21,6 +21,8 @@ import numpy as np
 
 
 def main() -> int:
+    import conf
+    from pipeline.train import compose_plain
     from pipeline.validation_cases import render_case
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -32,13 +34,14 @@ def main() -> int:
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(a.seed)
+    cfg = compose_plain(Path(conf.__file__).resolve().parent, [])     # once, not per case
     drawings = sorted({p.stem.rsplit("_", 1)[0] for p in a.cases.glob("val_*.json")})[::a.step]
     chosen = [a.cases / f"{d}_{style}.json" for d in drawings for style in ("clean", "pencil")]
     for path in chosen:
         gt = json.loads(path.read_text())
         size = int(gt.get("size", 512)) * a.factor
         strokes = [np.asarray(s, np.float64) * a.factor for s in gt["strokes"]]
-        case = render_case(rng, strokes, size, float(gt["width"]) * a.factor, gt["style"])
+        case = render_case(rng, strokes, size, float(gt["width"]) * a.factor, gt["style"], cfg)
         name = f"{path.stem}_x{a.factor}"
         case.image.save(a.out / f"{name}.png")
         (a.out / f"{name}.json").write_text(json.dumps(case.truth))
