@@ -406,6 +406,54 @@ def test_class_branch_training_keeps_detection(tmp_path):
     assert not torch.equal(h_old[:, 1:], h_new[:, 1:])
 
 
+def test_widening_the_shipped_network_keeps_its_heatmaps():
+    """training/widen.py: the shipped network embedded in a wider one computes the same H1..H6 (eval
+    mode); a change other than width is refused."""
+    from stages.keypoints.training.widen import can_widen, widen
+
+    ck = torch.load(PACKAGED_WEIGHTS, map_location="cpu", weights_only=False)
+    old_cfg = NetConfig.from_dict(ck["network"])
+    old = KeypointNet(old_cfg)
+    old.load_state_dict({k: v.float() for k, v in ck["state_dict"].items()})
+    wide_cfg = replace(old_cfg, stem_mid=old_cfg.stem_mid + 4,
+                       level_channels=tuple(c + (4 if k else 3) for k, c in enumerate(old_cfg.level_channels)))
+    wide = KeypointNet(wide_cfg)
+    wide.load_state_dict(widen(ck["state_dict"], old_cfg, wide_cfg))
+    old.eval(), wide.eval()
+    x = torch.from_numpy(network_input(synthetic.tee(size=96).grey, 0.5))[None, None]
+    with torch.inference_mode():
+        (a, ai), (b, bi) = old(x), wide(x)
+    assert torch.allclose(a, b, atol=1e-5) and all(torch.allclose(p, q, atol=1e-5) for p, q in zip(ai, bi))
+    # The new channels are live (random fan-in), so training can grow them.
+    assert wide.stem.fuse[0].weight[old_cfg.level_channels[0]:].abs().sum() > 0
+    assert not can_widen(old_cfg, replace(old_cfg, bottleneck_blocks=old_cfg.bottleneck_blocks + 1))
+    assert not can_widen(wide_cfg, old_cfg)
+    with pytest.raises(ValueError, match="not a widening"):
+        widen(ck["state_dict"], wide_cfg, old_cfg)
+
+
+def test_training_warm_starts_a_wider_network_from_a_narrow_checkpoint(tmp_path):
+    """``polyvec-train train.init_weights=<narrow> train.network.level_channels=<wider>`` widens the
+    checkpoint; a checkpoint of another layout is one clear error."""
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train
+
+    small = ["train.network.stem_mid=4", "train.network.bottleneck_blocks=1", "train.val.count=1",
+             "train.val.vector_count=0", "train.num_workers=0", "train.steps=1", "train.batch_size=2",
+             "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000"]
+    train(compose_plain(CONF, small + ["train.network.level_channels=[4,8,8,8]",
+                                       f"train.out_dir={tmp_path / 'narrow'}"]))
+    narrow = tmp_path / "narrow" / "keypoints.pt"
+    rec = train(compose_plain(CONF, small + ["train.network.level_channels=[6,12,16,16]",
+                                             f"train.init_weights={narrow}", f"train.out_dir={tmp_path / 'wide'}"]))
+    assert rec["widened_from"]["level_channels"] == [4, 8, 8, 8]
+    model, _ = load_model(tmp_path / "wide" / "keypoints.pt")
+    assert model.cfg.level_channels == (6, 12, 16, 16)
+    with pytest.raises(SystemExit, match="neither equals nor widens"):
+        train(compose_plain(CONF, small + ["train.network.level_channels=[4,8,8,8]", "train.network.bottleneck_blocks=2",
+                                           f"train.init_weights={narrow}", f"train.out_dir={tmp_path / 'deep'}"]))
+
+
 # --- readers (need ../shared) ------------------------------------------------------------------
 
 

@@ -22,6 +22,7 @@ from stages.keypoints.training.data import DrawingStream, prepare_sample, valida
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
 from stages.keypoints.training.targets import class_cross_entropy, keypoint_loss
+from stages.keypoints.training.widen import can_widen, widen
 
 
 def evaluate(model: KeypointNet, val, kcfg: dict, device: torch.device) -> MatchResult:
@@ -175,12 +176,19 @@ def train(cfg: dict) -> dict:
     lr0 = float(tc["lr"])
     opt = torch.optim.Adam(model.parameters(), lr=lr0, weight_decay=float(tc["weight_decay"]))
     start, elapsed0 = 0, 0.0
+    widened_from = None
     if tc.get("init_weights") and not (tc["resume"] and (out / "last.pt").is_file()):
         # Warm start (fine-tuning) from an exported or training checkpoint of the same network.
         ck = torch.load(tc["init_weights"], map_location=device, weights_only=False)
-        if ck["network"] != net_cfg.to_dict():
-            raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}")
         sd = ck.get("state_dict", ck.get("model"))
+        if ck["network"] != net_cfg.to_dict():
+            # A wider train.network starts from the narrow checkpoint's function (training/widen.py).
+            old_cfg = NetConfig.from_dict(ck["network"])
+            if not can_widen(old_cfg, net_cfg):
+                raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}, which "
+                                 f"train.network {net_cfg.to_dict()} neither equals nor widens")
+            sd = widen(sd, old_cfg, net_cfg)
+            widened_from = ck["network"]
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         for name, mod in model.named_modules():
             if name and any(name == r or name.startswith(r + ".") for r in tc["init_reset"]):
@@ -195,6 +203,7 @@ def train(cfg: dict) -> dict:
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start, history, elapsed0 = int(ck["step"]), ck.get("history", []), float(ck.get("elapsed_s", 0.0))
+        widened_from = ck.get("widened_from")
     (out / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
 
     frozen = _freeze(model, tc["train_only"])
@@ -285,7 +294,7 @@ def train(cfg: dict) -> dict:
             if step % int(tc["checkpoint_every"]) == 0 or done or over:
                 _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
                               "elapsed_s": time.time() - t0, "network": net_cfg.to_dict(),
-                              "history": history}, last)
+                              "widened_from": widened_from, "history": history}, last)
             if over and not done:
                 log.line(f"max_minutes reached at step {step}: stopping (resume to continue)")
                 stopped_early = True
@@ -297,7 +306,7 @@ def train(cfg: dict) -> dict:
               "seconds": time.time() - t0, "completed": done, "device": str(device),
               "device_name": torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu",
               "parameters": count_parameters(model), "history": history, "final_loss": run_loss,
-              "torch": str(torch.__version__)}
+              "torch": str(torch.__version__), "widened_from": widened_from}
     model_cpu = KeypointNet(net_cfg)
     model_cpu.load_state_dict({k: v.float().cpu() for k, v in model.state_dict().items()})
     export_weights(model_cpu, out / "keypoints.pt", {k: v for k, v in record.items() if k != "history"}
