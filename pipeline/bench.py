@@ -484,14 +484,18 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
 _EXIT = ExitCode("polyvec-bench")
 
 
+def _job(cfg: DictConfig) -> bool:
+    return any(r.get("error") for r in run_bench(cfg)[0])
+
+
 @hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")
 def _app(cfg: DictConfig) -> None:
-    _EXIT.job(lambda c: any(r.get("error") for r in run_bench(c)[0]), cfg)
+    _EXIT.job(_job, cfg)
 
 
 def main() -> None:
     """Console entry point; exits 1 when any case failed, 2 on a usage error."""
-    _EXIT.main(_app)
+    _EXIT.main(_app, single=(_job, "bench_app"))
 
 
 if __name__ == "__main__":
