@@ -1,12 +1,13 @@
 """First-run kernel compiles moved off the critical path (issue 14).
 
-The graph and flow stages run numba kernels that are compiled on first use and cached on disk
-(``@njit(cache=True)``): about 11 s and 10 s of a fresh install's first image, one after the other,
-while the other core idles. When a single-process run (``runtime.cluster`` sync or auto with one
-image) is about to compute those stages and their kernels have no cache yet, :func:`start` launches
-one background process per stage (``python -m pipeline.warmup STAGE``) that compiles the kernels by
-running the stage's code on a tiny drawing, while the main process works on prep, keypoints and the
-field. Before the engine computes graph or flow it waits for that stage's warm-up (:func:`wait`), so
+The graph, topology and flow stages run numba kernels that are compiled on first use and cached on
+disk (``@njit(cache=True)``): about 11 s, 1 s and 10 s of a fresh install's first image, one after
+the other, while the other core idles. When a single-process run (``runtime.cluster`` sync or auto
+with one image) is about to compute those stages and their kernels have no cache yet, :func:`start`
+launches two background processes (``python -m pipeline.warmup STAGE ...``: the graph's; topology's
+then the flow's) that compile the kernels by running the stages' code on tiny inputs, while the main
+process works on prep, keypoints and the field. Before the engine computes one of these stages it
+waits for that stage's warm-up (:func:`wait`), so
 a kernel is never compiled twice at once; it then loads the kernels from the cache. A warm-up that
 fails or takes too long only costs the time it took: the stage then compiles what it still lacks.
 The warm-ups run in their own session (Ctrl-C in the terminal reaches only polyvec, which stops
@@ -25,8 +26,12 @@ from pipeline.registry import default_config
 #: Modules whose numba kernels are compiled on first use and cached on disk, per stage.
 KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"),
                   "topology": ("stages/topology/constrained_path.py",), "flow": ("stages/flow/kernel.py",)}
-#: Stages whose kernels a background process compiles (topology's one kernel compiles in ~1 s).
-WARMED = ("graph", "flow")
+#: Stages whose kernels a background process compiles.
+WARMED = ("graph", "topology", "flow")
+#: The stages one background process warms, in order: topology's one kernel (~1 s) is compiled by
+#: the flow's process before the flow's (~8 s): topology runs first, after the graph (the critical
+#: path of a first run), while the flow's own warm-up has seconds to spare.
+PROCESSES = (("graph",), ("topology", "flow"))
 #: Longest wait for a warm-up before the stage compiles on its own (s).
 WAIT_LIMIT_S = 180.0
 
@@ -81,16 +86,20 @@ def start(stages: list[str]) -> list[str]:
     list of str
         The stages now warming up.
     """
+    cold = set(uncompiled([s for s in stages if s in WARMED]))
     started = []
-    for stage in uncompiled([s for s in stages if s in WARMED]):
-        if stage in _RUNNING and _RUNNING[stage].poll() is None:
+    for group in PROCESSES:
+        todo = [s for s in group if s in cold and not (s in _RUNNING and _RUNNING[s].poll() is None)]
+        if not todo:
             continue
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                    NUMBA_NUM_THREADS="1")
-        _RUNNING[stage] = subprocess.Popen([sys.executable, "-m", "pipeline.warmup", stage], cwd=str(_ROOT),
-                                           env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                           stderr=subprocess.DEVNULL, start_new_session=True)
-        started.append(stage)
+        proc = subprocess.Popen([sys.executable, "-m", "pipeline.warmup", *todo], cwd=str(_ROOT),
+                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+        for stage in todo:
+            _RUNNING[stage] = proc
+        started += todo
     return started
 
 
@@ -113,7 +122,7 @@ def stop() -> None:
         _, proc = _RUNNING.popitem()
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
+        proc.wait()
 
 
 def warm(stage: str) -> None:
@@ -122,8 +131,9 @@ def warm(stage: str) -> None:
     Parameters
     ----------
     stage : str
-        ``graph`` (prep → field → graph) or ``flow`` (:func:`stages.flow.polyvector_flow` on one
-        straight path over a uniform field: the kernel's types do not depend on the drawing).
+        ``graph`` (prep → field → graph), ``topology`` (its constrained-walk search on a three-vertex
+        path) or ``flow`` (:func:`stages.flow.polyvector_flow` on one straight path over a uniform
+        field). The kernels' types do not depend on the drawing.
     """
     import numpy as np
 
@@ -145,9 +155,18 @@ def warm(stage: str) -> None:
         c2 = np.full((16, 16), -0.5 + 0j)
         xy = np.stack([np.linspace(2.0, 13.0, 12), np.linspace(3.0, 12.0, 12)], axis=1)
         polyvector_flow(c0, c2, [xy], [np.full(12, 3.0)], [np.linspace(0.0, 11.0, 12)], params)
+    elif stage == "topology":
+        from stages.topology.constrained_path import _search
+
+        # The path 0 - 1 - 2 (arcs 0→1, 1→0, 1→2, 2→1), from vertex 0 to vertex 2 through 1.
+        i64 = np.int64
+        _search(np.array([0, 1, 3, 4], i64), np.array([1, 0, 2, 1], i64), np.ones(4), np.array([1, 0, 3, 2], i64),
+                np.array([0, 2, 3, 4, 6], i64), np.ones(6, bool), 0, 3, np.array([0, 1, 0], i64),
+                np.array([True, False, False]), np.array([False, False, True]), 1)
     else:
         raise SystemExit(f"pipeline.warmup: no warm-up for stage {stage!r} (known: {', '.join(WARMED)})")
 
 
 if __name__ == "__main__":
-    warm(sys.argv[1])
+    for name in sys.argv[1:]:
+        warm(name)

@@ -35,9 +35,18 @@ xy = np.asarray(g["vertex_xy"], np.float64)[:6]
 params = from_section(FlowConfig, cfg("flow"), "flow")
 polyvector_flow(np.asarray(f["c0_ext"]), np.asarray(f["c2_ext"]), [xy], [np.full(len(xy), 3.0)],
                 [np.arange(len(xy), dtype=np.float64)], params)
+import stages.topology.stage as topology
+from pipeline.registry import BY_NAME
+# The tee needs no constrained walk; the example drawing does (the topology warm-up uses neither).
+p = prep.run(cfg("prep"), image_bytes=synthetic.example_drawing().png_bytes(), image_name="example.png")
+f = field_run(cfg("field"), prep=p)
+g = graph.run(cfg("graph"), prep=p, field=f)
+kp = BY_NAME["keypoints"].load().run(cfg("keypoints"), prep=p)
+edits = BY_NAME["keypoint_edits"].load().run(cfg("keypoint_edits"), keypoints=kp)
+topology.run(cfg("topology"), prep=p, keypoint_edits=edits, field=f, graph=g)
 out = {}
 for o in gc.get_objects():
-    if isinstance(o, Dispatcher) and o.py_func.__module__.split(".")[1] in ("graph", "flow"):
+    if isinstance(o, Dispatcher) and o.py_func.__module__.split(".")[1] in ("graph", "topology", "flow"):
         s = o.stats
         out[o.py_func.__name__] = [sum(s.cache_hits.values()), sum(s.cache_misses.values())]
 print(json.dumps(out))
@@ -54,7 +63,7 @@ def test_a_warm_up_compiles_exactly_the_kernels_the_stages_then_load(tmp_path):
     assert proc.returncode == 0, proc.stderr
     kernels = json.loads(proc.stdout.strip().splitlines()[-1])
     # The entry kernels of tracing, cross-sections and the flow; their helpers are compiled into them.
-    for name in ("_trace_all", "_build_sections", "_flow_kernel"):
+    for name in ("_trace_all", "_build_sections", "_search", "_flow_kernel"):
         assert kernels[name][0] >= 1, (name, kernels)
     assert not {k: v for k, v in kernels.items() if v[1]}, kernels
 
@@ -81,7 +90,10 @@ def test_start_skips_compiled_kernels_and_stop_ends_what_runs(tmp_path, monkeypa
     assert warmup.start(["graph", "flow"]) == []
     monkeypatch.setattr(warmup, "uncompiled", lambda stages: list(stages))
     monkeypatch.setattr(warmup.subprocess, "Popen", _SleepPopen)
-    assert warmup.start(["prep", "graph", "flow"]) == ["graph", "flow"]
+    assert warmup.start(["prep", "graph", "topology", "flow"]) == ["graph", "topology", "flow"]
+    # Two processes: the graph's, and topology's then the flow's.
+    assert warmup._RUNNING["topology"] is warmup._RUNNING["flow"] is not warmup._RUNNING["graph"]
+    assert warmup._RUNNING["flow"].args[-2:] == ["sleep", "60"] and _SleepPopen.calls[-1][-2:] == ["topology", "flow"]
     procs = list(warmup._RUNNING.values())
     warmup.stop()
     assert warmup._RUNNING == {} and all(p.poll() is not None for p in procs)
@@ -90,5 +102,8 @@ def test_start_skips_compiled_kernels_and_stop_ends_what_runs(tmp_path, monkeypa
 class _SleepPopen(subprocess.Popen):
     """A stand-in warm-up process that only sleeps."""
 
+    calls: list = []
+
     def __init__(self, args, **kwargs):
+        _SleepPopen.calls.append(list(args))
         super().__init__(["sleep", "60"], **kwargs)
