@@ -501,3 +501,32 @@ def test_a_plain_command_line_composes_its_config_once(monkeypatch):
     assert check_overrides(args)
     assert not check_overrides(["flow.lam=0.1,0.2"]) and not check_overrides(["hydra.verbose=true"])
     assert not check_overrides(["-m", "flow.lam=1"]) and not check_overrides(["--cfg", "job"])
+
+
+_FINALISED_AT_EXIT = """
+import atexit, sys
+class Witness:
+    def __del__(self):
+        print("finalised", flush=True)
+witness = Witness()
+atexit.register(lambda: print("atexit ran", flush=True))
+sys.argv = ["polyvec", *sys.argv[1:]]
+from pipeline.cli import main
+main()
+"""
+
+
+@pytest.mark.parametrize("args, code", [(["missing.png"], 2), (["input=vee.png", "runtime.cluster=sync"], 0)])
+def test_the_command_ends_without_the_interpreters_teardown(tmp_path, args, code):
+    """``polyvec`` leaves with its exit status once everything is written, skipping Python's
+    finalisation (~1 s with torch and numba loaded); atexit handlers still run."""
+    import subprocess
+    import sys
+
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    proc = subprocess.run([sys.executable, "-c", _FINALISED_AT_EXIT, *args], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == code, proc.stderr[-2000:]
+    assert "atexit ran" in proc.stdout and "finalised" not in proc.stdout
+    if code == 0:
+        assert (tmp_path / "out" / "vee.svg").read_text().startswith("<")
