@@ -265,8 +265,11 @@ def test_ctrl_c_prints_one_line(tmp_path):
     src.mkdir()
     for k in range(4):
         (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
+    # The default SIGINT disposition, as in a terminal: a suite started as a background job of a
+    # non-interactive shell inherits SIGINT ignored, and Python then installs no handler for it.
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob("artifacts/prep/*/*")) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.1)
