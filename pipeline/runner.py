@@ -107,6 +107,7 @@ class RuntimeConfig:
     progress: bool
     pages: bool
     debug: bool
+    keypoints_process: bool
 
     def __post_init__(self) -> None:
         if self.cluster not in ("auto", "local", "sync"):
@@ -488,7 +489,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             # compile there meanwhile.
             warmup.start(sorted(todo))
             try:
-                _run_sync(pending, store.url, batch, report)
+                _run_sync(pending, store.url, batch, report,
+                          in_child=("keypoints",) if runtime["keypoints_process"] else ())
             finally:
                 warmup.stop()
         else:
@@ -540,16 +542,83 @@ SYNC_THREADS = 2
 SYNC_PARALLEL_MAX_PIXELS = 4_000_000
 
 
-def _run_sync(pending, store_url, batch, report) -> None:
+class _ChildTasks:
+    """A child process that runs the in-process scheduler's tasks of some stages (the keypoints).
+
+    Why: beside a keypoints thread (torch's import, then the network) the field and graph of the
+    same drawing took 1.5× their time alone (the GIL and the interpreter between numpy calls), beside
+    a keypoints process hardly more (stages/DECISIONS.md, engine). The child is spawned at once, with
+    SIGINT ignored (Ctrl-C is the driver's to report, as for dask's workers), and imports the
+    stages' code while the driver runs prep.
+    """
+
+    def __init__(self, stages: tuple[str, ...]):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        self.lock = threading.Lock()
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:
+            self.proc = ctx.Process(target=_serve_tasks, args=(child, stages), daemon=True,
+                                    name="polyvec-" + "-".join(stages))
+            self.proc.start()
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
+        child.close()
+
+    def run(self, task: "Task", store_url: str, upstream: tuple) -> "TaskResult":
+        """Run one task in the child; a lost child is this task's failure."""
+        with self.lock:
+            try:
+                self.conn.send((task, store_url, upstream))
+                return self.conn.recv()
+            except (EOFError, OSError) as exc:
+                return TaskResult(task.image, task.stage, task.key, "failed",
+                                  error=f"worker lost: {type(exc).__name__}: {exc}")
+
+    def close(self, kill: bool = False) -> None:
+        """Let the child leave (it skips its interpreter's teardown), or kill it."""
+        if kill:
+            self.proc.kill()
+        else:
+            try:
+                self.conn.send(None)
+            except OSError:
+                pass
+        self.conn.close()
+
+
+def _serve_tasks(conn, stages: tuple[str, ...]) -> None:
+    """The child of :class:`_ChildTasks`: import the stages, then run tasks until told to stop."""
+    os.environ.update(THREAD_ENV)
+    for name in stages:
+        BY_NAME[name].load()
+    try:
+        while (message := conn.recv()) is not None:
+            task, store_url, upstream = message
+            conn.send(execute(task, store_url, *upstream))
+    except (EOFError, OSError):  # the driver is gone (Ctrl-C): nothing to report to
+        pass
+    os._exit(0)
+
+
+def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ()) -> None:
     """Run the pending tasks in this process, at most :data:`SYNC_THREADS` at once, in DAG order.
 
     A task starts when the tasks of its image that it reads have finished; earlier images first. A
     task that starts with nothing else running or ready runs ``alone`` (numba may use its whole pool:
-    the flow). On Ctrl-C no new task starts; the running ones finish (each writes its artifact whole).
+    the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`),
+    started when such a task is pending. On Ctrl-C no new task starts; the running ones finish (each
+    writes its artifact whole) and the child is killed.
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
+    left_in_child = sum(t.stage in in_child for _, t in waiting)
+    child = _ChildTasks(in_child) if left_in_child else None
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}
@@ -569,6 +638,8 @@ def _run_sync(pending, store_url, batch, report) -> None:
         return sizes[i] <= SYNC_PARALLEL_MAX_PIXELS
 
     def work(i: int, t: Task, alone: bool) -> TaskResult:
+        if child is not None and t.stage in in_child:
+            return child.run(t, store_url, _needed(t, results[i]))
         warmup.wait(t.stage)
         return execute(t, store_url, *_needed(t, results[i]), alone=alone)
 
@@ -589,11 +660,18 @@ def _run_sync(pending, store_url, batch, report) -> None:
                 r = fut.result()
                 results[i][t.stage] = r
                 report(r)
+                if child is not None and t.stage in in_child:
+                    left_in_child -= 1
+                    if not left_in_child:  # its memory (torch's) is not needed any more
+                        child.close()
+                        child = None
         finished_cleanly = True
     finally:
         # Interrupted: return at once (the running tasks end in their threads, each writing its
         # artifact whole, before the process exits); else every thread is idle already.
         pool.shutdown(wait=finished_cleanly, cancel_futures=True)
+        if child is not None:
+            child.close(kill=not finished_cleanly)
 
 
 def _run_dask(pending, store_url, batch, report, client) -> None:

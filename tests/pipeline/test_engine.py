@@ -352,3 +352,33 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
     status = {r.stage: r.status for r in reported}
     assert status["graph"] == "computed" and status["keypoint_edits"] == "failed"
     assert status["topology"] == status["flow"] == status["export"] == "skipped"
+
+
+def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg):
+    """``runtime.keypoints_process``: an in-process run computes the keypoints in a child process
+    (beside the field and graph on this process's threads, free of the GIL) with the same artifact;
+    the child is gone when the run returns."""
+    import json
+    import multiprocessing
+
+    import numpy as np
+
+    image = tmp_path / "vee.png"
+    image.write_bytes(synthetic.vee(size=48, width=3).png_bytes())
+    pids, keys = {}, {}
+    for flag in ("true", "false"):
+        store = tmp_path / f"store-{flag}"
+        batch = run_batch([image], compose_cfg(f"store.path={store}", "runtime.cluster=sync", "runtime.until=keypoint_edits",
+                                               f"runtime.keypoints_process={flag}"))
+        assert all(r.status == "computed" for r in batch.results[str(image)].values())
+        keys[flag] = batch.results[str(image)]["keypoints"].key
+        manifests = {p.parent.parent.parent.name: json.loads(p.read_text()) for p in store.glob("*/*/*/manifest.json")}
+        pids[flag] = {stage: m["pid"] for stage, m in manifests.items()}
+        assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
+    assert pids["true"]["keypoints"] != os.getpid() and pids["true"]["prep"] == os.getpid()
+    assert pids["false"]["keypoints"] == os.getpid()
+    assert keys["true"] == keys["false"]
+    from pipeline.store import ArtifactStore
+    a = ArtifactStore(str(tmp_path / "store-true")).load("keypoints", keys["true"])
+    b = ArtifactStore(str(tmp_path / "store-false")).load("keypoints", keys["false"])
+    assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["heatmaps"], b["heatmaps"])
