@@ -37,7 +37,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.bench_report import case_picture, pick_sort_column, print_tables, safe_name, sort_key, write_report
-from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError, exit_now
+from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError
 from pipeline.runner import BatchResult, TaskResult, plan, run_batch
 from pipeline.store import ArtifactStore
 from stages.config import from_section
@@ -495,10 +495,7 @@ def _app(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point; exits 1 when any case failed, 2 on a usage error."""
-    try:
-        _EXIT.main(_app, single=(_job, "bench_app"))
-    except SystemExit as done:
-        exit_now(done.code)
+    _EXIT.console(_app, single=(_job, "bench_app"))
 
 
 if __name__ == "__main__":

@@ -14,8 +14,8 @@ import os
 import re
 import sys
 from contextlib import contextmanager
-from typing import Callable
 from pathlib import Path
+from typing import Callable
 
 import hydra
 from omegaconf import DictConfig
@@ -518,6 +518,14 @@ class ExitCode:
             close_client()
         sys.exit(self.code)
 
+    def console(self, app, single: tuple[Callable[[DictConfig], bool], str] | None = None) -> None:
+        """:meth:`main` for a console entry point: the process ends with its status through
+        :func:`exit_now` (no interpreter teardown)."""
+        try:
+            self.main(app, single)
+        except SystemExit as done:
+            exit_now(done.code)
+
     def interrupted(self) -> None:
         """Report Ctrl-C in one line, then shut dask down with stderr silenced and exit 130."""
         done = f"{PROGRESS.done} of {PROGRESS.total} images done; " if PROGRESS.total else ""
@@ -582,10 +590,7 @@ def main() -> None:
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         print(HELP)
         sys.exit(0)
-    try:
-        _EXIT.main(_app, single=(_job, "config"))
-    except SystemExit as done:
-        exit_now(done.code)
+    _EXIT.console(_app, single=(_job, "config"))
 
 
 if __name__ == "__main__":

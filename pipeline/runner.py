@@ -18,6 +18,7 @@ import threading
 import time
 import traceback
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -373,6 +374,22 @@ _CLIENT: Any = None
 _CLIENT_SPEC: tuple | None = None
 
 
+@contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while worker processes are started from the main thread, so that they inherit
+    it (an ignored SIGINT survives exec, and Python then installs no KeyboardInterrupt handler): the
+    terminal sends Ctrl-C to the whole process group, and each worker would print its own
+    tracebacks; the driver reports the interrupt once and shuts them down. Elsewhere, a no-op
+    (only the main thread may set signal handlers)."""
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+    try:
+        yield
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
+
+
 def get_client(runtime: dict):
     """A dask.distributed client: a local cluster of single-threaded processes, or a remote scheduler.
 
@@ -394,19 +411,10 @@ def get_client(runtime: dict):
     else:
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
-        # The worker processes are started with Ctrl-C ignored (an ignored SIGINT survives exec, and
-        # Python then installs no KeyboardInterrupt handler): the terminal sends Ctrl-C to the whole
-        # process group, and each worker would print its own tracebacks; the driver reports the
-        # interrupt once and shuts them down.
-        main_thread = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-        try:
+        with _sigint_ignored():  # the workers leave Ctrl-C to the driver
             cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
                                    dashboard_address=":0", memory_limit=runtime["memory_limit"],
                                    env=dict(THREAD_ENV), silence_logs=50)
-        finally:
-            if main_thread:
-                signal.signal(signal.SIGINT, previous)
         client = Client(cluster)
     _CLIENT, _CLIENT_SPEC = client, spec
     return client
@@ -558,15 +566,10 @@ class _ChildTasks:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.lock = threading.Lock()
-        main_thread = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-        try:
+        with _sigint_ignored():
             self.proc = ctx.Process(target=_serve_tasks, args=(child, stages), daemon=True,
                                     name="polyvec-" + "-".join(stages))
             self.proc.start()
-        finally:
-            if main_thread:
-                signal.signal(signal.SIGINT, previous)
         child.close()
 
     def run(self, task: "Task", store_url: str, upstream: tuple) -> "TaskResult":

@@ -22,7 +22,7 @@ from stages.keypoints.training.data import DrawingStream, prepare_sample, valida
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
 from stages.keypoints.training.targets import class_cross_entropy, keypoint_loss
-from stages.keypoints.training.widen import can_widen, widen
+from stages.keypoints.training.widen import widen
 
 
 def evaluate(model: KeypointNet, val, kcfg: dict, device: torch.device) -> MatchResult:
@@ -183,11 +183,11 @@ def train(cfg: dict) -> dict:
         sd = ck.get("state_dict", ck.get("model"))
         if ck["network"] != net_cfg.to_dict():
             # A wider train.network starts from the narrow checkpoint's function (training/widen.py).
-            old_cfg = NetConfig.from_dict(ck["network"])
-            if not can_widen(old_cfg, net_cfg):
+            try:
+                sd = widen(sd, NetConfig.from_dict(ck["network"]), net_cfg)
+            except ValueError:
                 raise SystemExit(f"init_weights {tc['init_weights']} has network {ck['network']}, which "
-                                 f"train.network {net_cfg.to_dict()} neither equals nor widens")
-            sd = widen(sd, old_cfg, net_cfg)
+                                 f"train.network {net_cfg.to_dict()} neither equals nor widens") from None
             widened_from = ck["network"]
         model.load_state_dict({k: v.float() for k, v in sd.items()})
         for name, mod in model.named_modules():
