@@ -163,3 +163,38 @@ def test_shared_split_holds_out_thirty_categories():
     # none of realvec_dev's Quick, Draw! categories is among them
     dev = {p.stem for p in (SHARED / "data" / "vector" / "quickdraw").glob("*.ndjson")}
     assert not dev & {Path(f).stem for f in files}
+
+
+def test_keypoint_crops_centre_on_the_weighted_types(tmp_path):
+    """``train.keypoint_crop_type_weights`` chooses which keypoints the keypoint crops centre on: with
+    the weight on junctions only, every crop of a T holds the T's junction; on endpoints only, few do."""
+    import itertools
+
+    from stages.keypoints.training.data import DrawingStream
+
+    _write_categories(tmp_path / "qd", ["tee"], per=3)
+
+    def junction_share(weights: str) -> float:
+        cfg = compose_plain(CONF, [f"train.vector.files=[{tmp_path / 'qd' / '*.ndjson'}]", "train.vector.holdout=0",
+                                   "train.vector.stroke3=[]", "train.vector.size=[160,192]", "train.vector_prob=1.0",
+                                   "train.keypoint_crop_prob=1.0", f"train.keypoint_crop_type_weights={weights}"])
+        crops = list(itertools.islice(iter(DrawingStream(cfg, 32, 0)), 48))
+        return float(np.mean([float(t[2].max()) > 0.9 for _, t, _ in crops]))
+
+    assert junction_share("[0,1,0]") == 1.0
+    assert junction_share("[1,0,0]") < 0.5
+    with pytest.raises(ValueError, match="three weights"):
+        junction_share("[1,1]")
+
+
+def test_junction_weighted_band_counts_junction_pixels_more():
+    from stages.keypoints.training.targets import gaussian_heatmaps, junction_weighted_band
+
+    t = torch.from_numpy(gaussian_heatmaps((16, 16), np.array([[4.5, 4.5], [11.5, 11.5]]), np.array([3, 1]), 2.0))[None]
+    band = torch.ones(1, 1, 16, 16)
+    band[..., :, 14:] = 0
+    assert junction_weighted_band(band, t, 0.0) is band
+    w = junction_weighted_band(band, t, 4.0)
+    assert float(w[0, 0, 4, 4]) == pytest.approx(5.0)        # the junction's centre counts 1 + 4 times
+    assert float(w[0, 0, 11, 11]) == pytest.approx(1.0)      # an endpoint's does not
+    assert float(w[..., 14:].abs().sum()) == 0.0              # nothing outside the band

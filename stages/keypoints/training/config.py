@@ -132,6 +132,7 @@ class TrainConfig:
     crop_schedule: list[Any]      # [fraction of steps, crop side px] pairs
     crops_per_image: int
     keypoint_crop_prob: float
+    keypoint_crop_type_weights: list[float]   # endpoint, junction, corner
     init_weights: str | None
     init_reset: list[str]
     train_only: list[str]
@@ -139,6 +140,7 @@ class TrainConfig:
     sigma: float
     loss_weights: list[float]
     fp_weight: float
+    junction_loss_weight: float
     class_ce_weight: float
     band_dilation: int
     log_every: int

@@ -16,6 +16,7 @@ import torch
 from skimage.measure import approximate_polygon
 
 from stages.config import from_section
+from stages.keypoints.codes import TYPE_CODES
 from stages.keypoints.inference import dilate_band, network_input
 from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
 from stages.keypoints.training.human_strokes import fit_strokes, read_quickdraw_ndjson, read_stroke3
@@ -78,6 +79,10 @@ class DrawingStream(torch.utils.data.IterableDataset):
         rules = from_section(LabelRules, tc["labels"], "train.labels")
         c = self.crop
         kp_prob = float(tc["keypoint_crop_prob"])
+        type_w = np.asarray(tc.get("keypoint_crop_type_weights") or [1.0, 1.0, 1.0], float)
+        if type_w.shape != (3,) or (type_w < 0).any() or type_w.sum() <= 0:
+            raise ValueError(f"train.keypoint_crop_type_weights must be three weights >= 0, got {type_w.tolist()}")
+        uniform = bool(np.all(type_w == type_w[0]))
         vprob = float(tc.get("vector_prob") or 0.0)
         vcfg = tc.get("vector") or {}
         pool = vector_pool(vcfg, "train") if vprob > 0 else {}
@@ -100,7 +105,13 @@ class DrawingStream(torch.utils.data.IterableDataset):
             for _ in range(per):
                 if len(pts) and rng.random() < kp_prob:
                     # Centre-ish on a keypoint: positives are rare, and this is where learning is.
-                    px, py = pts[rng.integers(len(pts))]
+                    if uniform:
+                        k = rng.integers(len(pts))
+                    else:
+                        # Over-sample the centres of the rarer, harder types (junction knots).
+                        tw = type_w[np.searchsorted(TYPE_CODES, sample.types)]
+                        k = rng.choice(len(pts), p=tw / tw.sum()) if tw.sum() > 0 else rng.integers(len(pts))
+                    px, py = pts[k]
                     m = min(8, c // 4)
                     i0 = int(np.clip(int(py) - rng.integers(m, c - m), 0, h - c))
                     j0 = int(np.clip(int(px) - rng.integers(m, c - m), 0, w - c))

@@ -21,7 +21,7 @@ from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
 from stages.keypoints.training.data import DrawingStream, prepare_sample, validation_set
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
-from stages.keypoints.training.targets import class_cross_entropy, keypoint_loss
+from stages.keypoints.training.targets import class_cross_entropy, junction_weighted_band, keypoint_loss
 from stages.keypoints.training.widen import widen
 
 
@@ -255,7 +255,8 @@ def train(cfg: dict) -> dict:
                 x = x.contiguous(memory_format=torch.channels_last)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
                 final, inter, logits = model(x, return_logits=True)
-            loss, parts = keypoint_loss(final.float(), [i.float() for i in inter], t, b,
+            loss, parts = keypoint_loss(final.float(), [i.float() for i in inter], t,
+                                        junction_weighted_band(b, t, float(tc["junction_loss_weight"])),
                                         tuple(float(w) for w in tc["loss_weights"]), float(tc["fp_weight"]))
             if float(tc["class_ce_weight"]) > 0:
                 loss = loss + float(tc["class_ce_weight"]) * class_cross_entropy(logits.float(), t, b)
