@@ -193,6 +193,22 @@ def _point_at(poly_s, poly_x, poly_y, npoly, s):
 
 
 @njit(cache=True)
+def _argsort_insertion(a, n):
+    """Stable argsort of ``a[:n]`` by insertion: a cross-section holds a few crossings, and numba's
+    ``np.argsort`` compiles its whole quicksort (≈ 2 s of the first run) for them."""
+    idx = np.empty(n, np.int64)
+    for i in range(n):
+        k = i
+        v = a[i]
+        j = i
+        while j > 0 and v < a[idx[j - 1]]:
+            idx[j] = idx[j - 1]
+            j -= 1
+        idx[j] = k
+    return idx
+
+
+@njit(cache=True)
 def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, head, nxt, order, h, spacing,
                     cover, min_gap, max_gap, max_steps, ambiguity, tie, lane_pad):
     H, W = band.shape
@@ -264,7 +280,7 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
                         ncr, np0, np1, sg0, sg1 = _section(
                             c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g, f, h,
                             max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y)
-                        srt = np.argsort(cr_s[:ncr])
+                        srt = _argsort_insertion(cr_s, ncr)
                         pos0 = 0
                         for q in range(ncr):
                             if srt[q] == 0:

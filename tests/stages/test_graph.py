@@ -444,3 +444,14 @@ def test_streamline_edges_equal_the_three_key_lexsort():
     np.testing.assert_array_equal(edges, e[first])
     np.testing.assert_array_equal(ecurve, cc[first])
     np.testing.assert_array_equal(streamline_edges(mv, mc, mp, order)[0], edges)
+
+
+def test_cross_section_argsort_is_a_stable_argsort():
+    """The kernel's own argsort of a cross-section's crossings (no compiled quicksort) orders like a
+    stable sort, ties included."""
+    from stages.graph.cross_section import _argsort_insertion
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 7, 16, 40):
+        a = np.round(rng.normal(size=n + 3), 1)   # rounded: ties
+        np.testing.assert_array_equal(_argsort_insertion(a, n), np.argsort(a[:n], kind="stable"))
