@@ -583,7 +583,7 @@ class _ChildTasks:
                                   error=f"worker lost: {type(exc).__name__}: {exc}")
 
     def close(self, kill: bool = False) -> None:
-        """Let the child leave (it skips its interpreter's teardown), or kill it."""
+        """Let the child leave (it skips its interpreter's teardown), or kill it; does not wait."""
         if kill:
             self.proc.kill()
         else:
@@ -592,6 +592,13 @@ class _ChildTasks:
             except OSError:
                 pass
         self.conn.close()
+
+    def join(self, timeout_s: float = 5.0) -> None:
+        """Wait for the closed child to be gone (killed past ``timeout_s``): no process outlives the run."""
+        self.proc.join(timeout_s)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
 
 
 def _serve_tasks(conn, stages: tuple[str, ...]) -> None:
@@ -622,6 +629,7 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     left_in_child = sum(t.stage in in_child for _, t in waiting)
     child = _ChildTasks(in_child) if left_in_child else None
+    closed: _ChildTasks | None = None
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}
@@ -667,7 +675,7 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
                     left_in_child -= 1
                     if not left_in_child:  # its memory (torch's) is not needed any more
                         child.close()
-                        child = None
+                        closed, child = child, None
         finished_cleanly = True
     finally:
         # Interrupted: return at once (the running tasks end in their threads, each writing its
@@ -675,6 +683,11 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
         pool.shutdown(wait=finished_cleanly, cancel_futures=True)
         if child is not None:
             child.close(kill=not finished_cleanly)
+            closed = child
+        if closed is not None:
+            # The child leaves on its own soon after close(); the run returns once it is gone (a
+            # test under load saw it still alive when run_batch returned).
+            closed.join()
 
 
 def _run_dask(pending, store_url, batch, report, client) -> None:
