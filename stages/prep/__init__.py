@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "6"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "7"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
-#                     6: wide strokes downsampled
+#                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey
 
 
 @dataclass
@@ -71,6 +71,7 @@ class PrepConfig:
     repair_max_grey: float
     min_component_px: int
     paper_grain_sigmas: float
+    grain_smoothing: float
     max_ink_fraction: float
     contrast: ContrastConfig
     supersample: SupersampleConfig

@@ -28,6 +28,10 @@ Choices made on purpose
   paper level (median and MAD of the stretched grey) when the grain would otherwise cross it. Why:
   faint pencil on grainy paper put 25–53 % of the page in the band (3 of 84 pencil drawings of the
   validation split; 4,002 flow paths on one 512² drawing). The reference has no such rule.
+  Where the grain lowers the threshold, the band (and the paper statistics that set the threshold)
+  is found on the grey blurred by ``grain_smoothing`` px (Gaussian σ): the lowered threshold kept
+  only the darkest grains of a faint line, a broken 1-px band that the graph traced as dozens of
+  pieces (stages/DECISIONS.md, prep). The grey passed on is not blurred.
 * **Thin aliased strokes are supersampled** (``supersample``; issue #17 item 5, not in the
   references).  When the strokes' mean width (ink area / skeleton length of the band) is below
   ``below_width`` px and their edges are hard (at most ``max_soft_edges`` of the pixels bordering the
@@ -273,13 +277,20 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         grey = grey.astype(np.float32)
     threshold = c.threshold
     paper, grain = paper_statistics(grey)
+    smoothing = 0.0
     if c.paper_grain_sigmas > 0:
         # Grainy paper (scanned or photographed pencil): after the stretch the grain can reach the ink
         # threshold, and half the page became band. The band never starts within
         # paper_grain_sigmas grain deviations of the paper level, so grain gives isolated specks
         # (dropped with min_component_px), not a carpet; clean paper (grain 0) is unaffected.
-        threshold = min(threshold, paper - c.paper_grain_sigmas * grain)
-    mask = narrow_band(grey, threshold, c.repair_passes, c.repair_neighbours, c.min_component_px, c.repair_max_grey)
+        if c.grain_smoothing > 0 and paper - c.paper_grain_sigmas * grain < threshold:
+            # That threshold keeps only the darkest grains of a faint line: a broken, 1-px band.
+            # The grain is averaged out first (the grey the later stages see is left as it is).
+            smoothing = c.grain_smoothing
+        band_paper, band_grain = paper_statistics(_smoothed(grey, smoothing)) if smoothing else (paper, grain)
+        threshold = min(threshold, band_paper - c.paper_grain_sigmas * band_grain)
+    mask = narrow_band(_smoothed(grey, smoothing), threshold, c.repair_passes, c.repair_neighbours,
+                       c.min_component_px, c.repair_max_grey)
     ink = float(mask.mean())
     if ink == 0.0:
         if threshold < c.threshold:
@@ -312,14 +323,19 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
                          "(prep.downsample; the curves are mapped back)")
     if scale != 1.0:
         # The band again at the internal resolution; specks are dropped by their area in the drawing.
-        mask = narrow_band(grey, threshold, c.repair_passes, c.repair_neighbours,
+        mask = narrow_band(_smoothed(grey, smoothing * scale), threshold, c.repair_passes, c.repair_neighbours,
                            max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
         if not mask.any():
             raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
     return Artifact(arrays={"grey": grey, "mask": mask},
                     data={"height": h, "width": w, "scale": scale, "stroke_width": width, "mode": mode,
                           "ink_fraction": ink, "paper_level": paper, "paper_grain": grain,
-                          "band_threshold": threshold}, notes=notes)
+                          "band_threshold": threshold, "band_smoothing": smoothing}, notes=notes)
+
+
+def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
+    """``grey`` blurred by a Gaussian of ``sigma`` px (itself when ``sigma`` is 0)."""
+    return ndimage.gaussian_filter(grey, sigma) if sigma > 0 else grey
 
 
 def stroke_width(mask: np.ndarray) -> float:
