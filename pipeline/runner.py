@@ -629,7 +629,6 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     left_in_child = sum(t.stage in in_child for _, t in waiting)
     child = _ChildTasks(in_child) if left_in_child else None
-    closed: _ChildTasks | None = None
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}
@@ -649,7 +648,7 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
         return sizes[i] <= SYNC_PARALLEL_MAX_PIXELS
 
     def work(i: int, t: Task, alone: bool) -> TaskResult:
-        if child is not None and t.stage in in_child:
+        if t.stage in in_child:
             return child.run(t, store_url, _needed(t, results[i]))
         warmup.wait(t.stage)
         return execute(t, store_url, *_needed(t, results[i]), alone=alone)
@@ -671,23 +670,21 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
                 r = fut.result()
                 results[i][t.stage] = r
                 report(r)
-                if child is not None and t.stage in in_child:
+                if t.stage in in_child:
                     left_in_child -= 1
                     if not left_in_child:  # its memory (torch's) is not needed any more
                         child.close()
-                        closed, child = child, None
         finished_cleanly = True
     finally:
         # Interrupted: return at once (the running tasks end in their threads, each writing its
         # artifact whole, before the process exits); else every thread is idle already.
         pool.shutdown(wait=finished_cleanly, cancel_futures=True)
         if child is not None:
-            child.close(kill=not finished_cleanly)
-            closed = child
-        if closed is not None:
+            if left_in_child:  # interrupted with keypoints tasks left
+                child.close(kill=True)
             # The child leaves on its own soon after close(); the run returns once it is gone (a
             # test under load saw it still alive when run_batch returned).
-            closed.join()
+            child.join()
 
 
 def _run_dask(pending, store_url, batch, report, client) -> None:

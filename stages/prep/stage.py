@@ -277,7 +277,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         grey = grey.astype(np.float32)
     threshold = c.threshold
     paper, grain = paper_statistics(grey)
-    smoothing = 0.0
+    smoothing, band_grey, band_paper, band_grain = 0.0, grey, paper, grain
     if c.paper_grain_sigmas > 0:
         # Grainy paper (scanned or photographed pencil): after the stretch the grain can reach the ink
         # threshold, and half the page became band. The band never starts within
@@ -287,10 +287,11 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             # That threshold keeps only the darkest grains of a faint line: a broken, 1-px band.
             # The grain is averaged out first (the grey the later stages see is left as it is).
             smoothing = c.grain_smoothing
-        band_paper, band_grain = paper_statistics(_smoothed(grey, smoothing)) if smoothing else (paper, grain)
+            band_grey = _smoothed(grey, smoothing)
+            band_paper, band_grain = paper_statistics(band_grey)
         threshold = min(threshold, band_paper - c.paper_grain_sigmas * band_grain)
-    mask = narrow_band(_smoothed(grey, smoothing), threshold, c.repair_passes, c.repair_neighbours,
-                       c.min_component_px, c.repair_max_grey)
+    mask = narrow_band(band_grey, threshold, c.repair_passes, c.repair_neighbours, c.min_component_px,
+                       c.repair_max_grey)
     ink = float(mask.mean())
     if ink == 0.0:
         if threshold < c.threshold:

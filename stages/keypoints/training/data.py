@@ -79,7 +79,7 @@ class DrawingStream(torch.utils.data.IterableDataset):
         rules = from_section(LabelRules, tc["labels"], "train.labels")
         c = self.crop
         kp_prob = float(tc["keypoint_crop_prob"])
-        type_w = np.asarray(tc.get("keypoint_crop_type_weights") or [1.0, 1.0, 1.0], float)
+        type_w = np.asarray(tc["keypoint_crop_type_weights"], float)
         if type_w.shape != (3,) or (type_w < 0).any() or type_w.sum() <= 0:
             raise ValueError(f"train.keypoint_crop_type_weights must be three weights >= 0, got {type_w.tolist()}")
         uniform = bool(np.all(type_w == type_w[0]))
