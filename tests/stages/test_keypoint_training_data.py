@@ -198,3 +198,17 @@ def test_junction_weighted_band_counts_junction_pixels_more():
     assert float(w[0, 0, 4, 4]) == pytest.approx(5.0)        # the junction's centre counts 1 + 4 times
     assert float(w[0, 0, 11, 11]) == pytest.approx(1.0)      # an endpoint's does not
     assert float(w[..., 14:].abs().sum()) == 0.0              # nothing outside the band
+
+
+def test_cpu_autocast_only_where_the_cpu_has_native_bf16(monkeypatch):
+    """``train.cpu_amp: auto`` (the default): emulated bf16 made a CPU step 7x slower than fp32."""
+    from stages.errors import InputError
+    from stages.keypoints.training.loop import cpu_autocast
+
+    assert compose_plain(CONF, [])["train"]["cpu_amp"] == "auto"
+    for native in (False, True):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda native=native: native)
+        assert cpu_autocast("auto") is native
+        assert cpu_autocast(True) is True and cpu_autocast(False) is False
+    with pytest.raises(InputError, match="cpu_amp"):
+        cpu_autocast("sometimes")

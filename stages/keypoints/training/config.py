@@ -122,7 +122,7 @@ class TrainConfig:
     device: str
     cpu_threads: int
     amp: bool
-    cpu_amp: bool
+    cpu_amp: Any                  # true, false or "auto" (bf16 where the CPU has native bf16)
     channels_last: bool
     steps: int
     schedule_minutes: float | None
