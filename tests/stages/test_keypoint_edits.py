@@ -101,3 +101,18 @@ def test_edits_in_drawing_pixels_land_on_a_downsampled_prep():
     np.testing.assert_array_equal(out["types"], [5, 5, 3])
     with pytest.raises(InputError, match="84×68 drawing, this one is 83×66"):
         run(dict(CFG, edits=dict(edits, width=84, height=68)), kp)
+
+
+def test_oracle_edits_swap_the_detected_keypoints_of_a_type_for_the_labels():
+    """tests/benchmarks/oracle_keypoints.py: its edits, applied by the stage, leave exactly the labels."""
+    from tests.benchmarks.oracle_keypoints import oracle_edits
+
+    kp = _keypoints(80, 80)
+    case = {"size": 80, "endpoints": [[5.0, 6.0]], "junctions": [[41.0, 31.0], [12.0, 60.0]], "corners": []}
+    junctions = run(dict(CFG, edits=oracle_edits(case, kp["points"], kp["types"], "a.png", ["junction"])), kp)
+    np.testing.assert_allclose(junctions["points"], [[10.5, 10.5], [70.0, 50.0], [41, 31], [12, 60]], atol=1e-5)
+    np.testing.assert_array_equal(junctions["types"], [1, 5, 3, 3])
+    every = run(dict(CFG, edits=oracle_edits(case, kp["points"], kp["types"], "a.png",
+                                             ["endpoint", "junction", "corner"])), kp)
+    np.testing.assert_allclose(every["points"], [[5, 6], [41, 31], [12, 60]], atol=1e-5)
+    np.testing.assert_array_equal(every["types"], [1, 3, 3])
