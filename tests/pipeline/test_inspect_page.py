@@ -19,6 +19,10 @@ import pytest
 from tests.conftest import REPO, run_cli
 from tests.pipeline.cdp import chromium_path
 
+needs_chromium = pytest.mark.skipif(
+    chromium_path() is None,
+    reason="chromium is not installed (Debian package `chromium`; .ci/run installs it with apt-get)")
+
 LAYERS = ("drawing", "band", "h1", "hclass", "field", "graph", "candidates", "selected", "curves", "ends")
 RERUN = {"keypoint_edits", "topology", "flow", "select", "export"}
 
@@ -140,8 +144,7 @@ def test_the_readme_commands_run(work):
 
 
 # -- a real browser ----------------------------------------------------------------------------
-@pytest.mark.skipif(chromium_path() is None,
-                    reason="chromium is not installed (Debian package `chromium`; .ci/run installs it with apt-get)")
+@needs_chromium
 def test_browser_round_trip_toggle_add_a_junction_save_and_rerun(work, tmp_path):
     pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
     from tests.pipeline.cdp import Browser
@@ -219,6 +222,7 @@ def _wide_drawing(path):
     # divided its own size by the scale and saved edits for a 1004 x 804 drawing
     (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0),
 ], ids=["supersampled", "downsampled"])
+@needs_chromium
 def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path, draw, size, scale, on_page,
                                                                         in_drawing, near):
     """Thin strokes run at 2x (prep.supersample), wide ones at 1/4 (prep.downsample): the page shows
