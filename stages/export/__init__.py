@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "6"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
-#                     6: curves mapped back from a supersampled prep
+STAGE_VERSION = "7"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+#                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed
 
 
 @dataclass
@@ -69,6 +69,16 @@ class CornersConfig:
 
 
 @dataclass
+class GapsConfig:
+    """``export.gaps``: join free curve ends facing each other across a small gap (a broken faint stroke)."""
+
+    enabled: bool
+    max_px: float
+    max_widths: float
+    max_turn_deg: float
+
+
+@dataclass
 class ExportConfig:
     """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
@@ -84,17 +94,21 @@ class ExportConfig:
     spurs: SpursConfig
     overshoot: OvershootConfig
     corners: CornersConfig
+    gaps: GapsConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
             raise InputError("export config: need stroke_width > 0, 0 ≤ precision ≤ 8, bezier_tolerance > 0")
         if not 0 <= self.join.max_turn_deg <= 180 or self.join.tangent_px <= 0:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
+        if self.gaps.max_px < 0 or self.gaps.max_widths < 0 or not 0 <= self.gaps.max_turn_deg <= 90:
+            raise InputError("export config: need gaps.max_px ≥ 0, gaps.max_widths ≥ 0, 0 ≤ gaps.max_turn_deg ≤ 90")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.stage": ("run", "svg_document"),
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
-    "stages.export.corners": ("join_at_corners",),
+    "stages.export.corners": ("join_at_corners", "join_linked"),
+    "stages.export.gaps": ("close_gaps",),
     "stages.export.joins": ("attach_spurs", "collapse_short_links", "extend_overshoots", "join_continuations"),
 })

@@ -45,8 +45,33 @@ def join_at_corners(curves: list[dict]) -> list[dict]:
         if len(ends) == 2 and ends[0][0] != ends[1][0]:
             link[ends[0]], link[ends[1]] = ends[1], ends[0]
 
+    return join_linked(curves, link, corner_joints=True)
+
+
+def join_linked(curves: list[dict], link: dict, corner_joints: bool) -> list[dict]:
+    """Join curves along ``link`` (curve end -> the end of another curve it continues into) into chains.
+
+    Chains are followed through several joints; a closed chain is opened at its first joint, so no
+    curve is closed on itself. Shared by the corner joins and the gap closing.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`join_at_corners`.
+    link : dict
+        ``(curve, end) -> (curve, end)``, symmetric; each end at most once.
+    corner_joints : bool
+        Mark every joint as a corner vertex (``corners``); the joint's point is kept once when the two
+        ends coincide.
+
+    Returns
+    -------
+    list of dict
+        The curves after joining, each with ``corners``; a joined curve keeps its first piece's ``id``
+        and lists every piece's ``parts``.
+    """
     def walk(n: int, leave: int) -> list[tuple[int, int]]:
-        """Curves linked through corners from curve n leaving by end ``leave``: (curve, end it is left by),
+        """Curves linked from curve n leaving by end ``leave``: (curve, end it is left by),
         stopping at a free end or where the chain comes round to a curve already walked."""
         out, seen = [(n, leave)], {n}
         while (nxt := link.get(out[-1])) is not None and nxt[0] not in seen:
@@ -75,11 +100,12 @@ def join_at_corners(curves: list[dict]) -> list[dict]:
                 p, own = p[::-1], [len(p) - 1 - i for i in own][::-1]
             base = 0
             if pts:
-                joint = sum(len(q) for q in pts) - 1    # the corner vertex: the chain's last point so far
-                corners.append(joint)
+                joint = sum(len(q) for q in pts) - 1    # the joint: the chain's last point so far
+                if corner_joints:
+                    corners.append(joint)
                 base = joint + 1                         # this piece's first point comes next
                 if np.hypot(*(p[0] - pts[-1][-1])) <= 1e-9:
-                    p, own = p[1:], [i - 1 for i in own]     # the shared corner point once
+                    p, own = p[1:], [i - 1 for i in own]     # the shared joint point once
             corners += [base + i for i in own]
             pts.append(p)
         first, last = curves[pieces[0][0]], curves[pieces[-1][0]]

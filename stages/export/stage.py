@@ -20,7 +20,7 @@ Output (data of the artifact; the engine writes the files):
 
 The authors export raw polylines only (no Bézier fitting); this is an addition.
 
-Five clean-ups of the selected curves, each a choice beyond the paper (the authors export the
+Six clean-ups of the selected curves, each a choice beyond the paper (the authors export the
 selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
 unchanged by the first four (a curve passing a point counts twice, like two ends).
 
@@ -60,6 +60,12 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   Why: a stroke crossing itself is then one curve, not two curves crossing — a junction the
   drawing does not have (:func:`join_at_corners`).
 
+* **Gaps in a stroke** (``gaps``).  Last of all, a faint or grainy stroke whose ink breaks comes out
+  as curves end to end, each with two free ends where the drawing has one stroke.  Two free ends (no
+  other curve within max(2 px, w)) of different curves at most ``max(gaps.max_px, gaps.max_widths · w)``
+  apart, each pointing at the other within ``gaps.max_turn_deg``, are joined across the gap, nearest
+  first (:func:`~stages.export.gaps.close_gaps`).
+
 Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
 cutting them moves the false junction to where the curves part, which the ground truth rarely marks.
 """
@@ -76,6 +82,7 @@ from stages.errors import InputError
 from stages.export import ExportConfig
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
+from stages.export.gaps import close_gaps
 from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
 from stages.prep import internal_scale
@@ -210,6 +217,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                                    params.overshoot.max_widths, params.overshoot.clearance)
     if tidy and params.corners.enabled:
         curves = join_at_corners(curves)
+    if tidy and params.gaps.enabled:
+        curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
+                            params.join.tangent_px)
     scale = internal_scale(prep.data)
     if scale != 1:
         # prep supersampled thin or downsampled wide strokes: every stage so far worked at `scale` × the

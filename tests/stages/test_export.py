@@ -639,3 +639,41 @@ def test_the_bezier_fit_keeps_the_corners_sharp():
     assert all(t is not None and t > 45.0 for t in sharp)           # the corners stay corners
     # The plain fit joins its pieces with a common tangent: the corners are rounded off.
     assert all(t is None or t < 1.0 for t in turns_at_corners(export.fit_cubic_beziers(pts, 0.5)))
+
+
+def test_a_stroke_broken_by_a_small_gap_is_one_curve():
+    """export.gaps: free ends facing each other across a gap of ≤ max(6 px, 2 widths) are joined."""
+    from stages.export.gaps import close_gaps
+
+    left = _piece(1, _line([10, 20], [50, 20]), [1, 1], [0, 1])
+    right = _piece(2, _line([85, 21], [55, 20]), [1, 1], [2, 3])      # runs backwards, 5-px gap
+    out = close_gaps([left, right], 6.0, 2.0, 30.0, 5.0)
+    assert len(out) == 1 and sorted(out[0]["parts"]) == [1, 2] and out[0]["corners"] == []
+    pts = np.asarray(out[0]["points"])
+    assert {tuple(np.round(pts[0])), tuple(np.round(pts[-1]))} == {(10.0, 20.0), (85.0, 21.0)}
+    assert sorted(out[0]["end_keypoints"]) == [0, 2]                 # the far ends
+    # Through run(): on by default, off by its switch.
+    inputs = _inputs([left["points"], right["points"]], [0, 1], shape=(48, 96))
+    for p, c in zip(inputs["topology"].data["paths"], (left, right)):
+        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
+    assert len(export.run(CFG, **inputs).data["curves"]) == 1
+    assert len(export.run(_cfg(gaps={**CFG["gaps"], "enabled": False}), **inputs).data["curves"]) == 2
+
+
+@pytest.mark.parametrize("case", ["wide", "askew", "at_a_junction", "own_ends"])
+def test_gaps_that_are_not_a_broken_stroke_stay(case):
+    from stages.export.gaps import close_gaps
+
+    left = _piece(1, _line([10, 20], [50, 20]), [1, 1], [0, 1])
+    if case == "wide":                          # 10 px: more than max(6, 2 × 3) px
+        other = [_piece(2, _line([60, 20], [90, 20]), [1, 1], [2, 3])]
+    elif case == "askew":                       # the second piece leaves the gap at 90°
+        other = [_piece(2, _line([54, 20], [54, 50]), [1, 1], [2, 3])]
+    elif case == "at_a_junction":               # the first piece's end lies on a third curve (a T's stem)
+        other = [_piece(2, _line([55, 20], [85, 20]), [1, 1], [2, 3]),
+                 _piece(3, _line([51, 0], [51, 40]), [1, 1], [4, 5])]
+    else:                                       # one curve's own two ends across a 4-px gap: a ring stays open
+        ring = [[50 + 20 * np.cos(t), 40 + 20 * np.sin(t)] for t in np.linspace(0.2, 2 * np.pi - 0.01, 200)]
+        left, other = _piece(1, np.array(ring), [1, 1], [0, 1]), []
+    out = close_gaps([left, *other], 6.0, 2.0, 30.0, 5.0)
+    assert len(out) == 1 + len(other)

@@ -1,0 +1,88 @@
+"""Gaps in a faint stroke closed: free curve ends that face each other across a small gap become one curve.
+
+Described in :mod:`stages.export.stage` (``export.gaps``); measurements in stages/DECISIONS.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stages.export.corners import join_linked
+from stages.export.joins import end_direction
+
+#: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of
+#: it: the acceptance scorer's meeting radius max(2, w).
+FREE_PX = 2.0
+
+
+def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_deg: float,
+               tangent_px: float) -> list[dict]:
+    """Join pairs of free curve ends that face each other across a gap of at most a few stroke widths.
+
+    A faint or grainy pencil stroke whose ink breaks (a light stretch, a white gap in the grain) is
+    traced as several curves end to end, each with two free ends where the drawing has one stroke.
+    Two free ends of different curves at most ``max(max_px, max_widths · w)`` apart (``w`` their mean
+    stroke width), each pointing at the other within ``max_turn_deg`` (end directions over
+    ``tangent_px`` of arc), are joined — nearest pairs first, each end once — into one curve bridging
+    the gap with a straight segment. Ends at a junction or beside another curve are not free and stay.
+
+    Parameters
+    ----------
+    curves : list of dict
+        ``points`` (n, 2), ``end_types``, ``end_keypoints``, ``parts``, ``width`` (may be None) per curve.
+    max_px, max_widths : float
+        Largest gap: ``max(max_px, max_widths · w)``.
+    max_turn_deg : float
+        Largest angle between each end's outward direction and the gap.
+    tangent_px : float
+        Arc over which end directions are measured.
+
+    Returns
+    -------
+    list of dict
+        The curves after joining (as :func:`~stages.export.corners.join_linked`: joined curves keep
+        their first piece's ``id`` and list every piece's ``parts``).
+    """
+    if len(curves) < 2:
+        return curves
+    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
+    owner = np.concatenate([np.full(len(p), n) for n, p in enumerate(pts)])
+    tree = cKDTree(np.concatenate(pts))
+    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
+    ends, where = [], []
+    for n, p in enumerate(pts):
+        if len(p) < 2:
+            continue
+        near = max(FREE_PX, width[n])
+        for e in (0, 1):
+            q = p[0 if e == 0 else -1]
+            if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
+                continue                                   # a closed loop's end meets its own start
+            if any(owner[k] != n for k in tree.query_ball_point(q, near)):
+                continue                                   # at a junction, or beside another curve
+            ends.append((n, e))
+            where.append(q)
+    if len(ends) < 2:
+        return curves
+    where = np.array(where)
+    reach = max(max_px, max_widths * max(width))
+    cos_max = np.cos(np.radians(max_turn_deg))
+    pairs = []
+    for a, b in cKDTree(where).query_pairs(reach):
+        (i, ei), (j, ej) = ends[a], ends[b]
+        if i == j:
+            continue
+        gap = where[b] - where[a]
+        d = float(np.hypot(*gap))
+        if d < 1e-9 or d > max(max_px, max_widths * 0.5 * (width[i] + width[j])):
+            continue
+        u = gap / d
+        if end_direction(pts[i], ei == 0, tangent_px) @ u >= cos_max and \
+                end_direction(pts[j], ej == 0, tangent_px) @ -u >= cos_max:
+            pairs.append((d, a, b))
+    link: dict = {}
+    for _, a, b in sorted(pairs):
+        if ends[a] not in link and ends[b] not in link:
+            link[ends[a]], link[ends[b]] = ends[b], ends[a]
+    return join_linked(curves, link, corner_joints=False) if link else curves
