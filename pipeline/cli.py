@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
 from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, write_outputs
 from pipeline.store import ArtifactStore
+from stages.errors import InputError
 
 HELP = """usage: polyvec [PATH ...] [key=value ...] [-m] [--cfg job]
 
@@ -243,10 +244,18 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     out_dir = job_output_dir(cfg)
     named = resolve_inputs(inputs or cfg.get("input"), out_dir)
     images = [image for image, _ in named]
-    store = ArtifactStore(str(cfg.store.path))
     from pipeline.registry import active_stages
+    from pipeline.schema import validate
 
-    stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
+    try:
+        # A value out of its range (export.join.max_turn_deg=200) is a usage error: one line, exit 2,
+        # before the store is opened (run_batch checks again for its other callers).
+        validate(cfg, ["runtime"])
+        stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
+        validate(cfg, stages)
+    except InputError as exc:
+        raise UsageError(str(exc)) from None
+    store = ArtifactStore(str(cfg.store.path))
     if "keypoint_edits" in stages:
         announce_edits(images, cfg, console)
     PROGRESS.start(len(images), stages[-1] if stages else None)

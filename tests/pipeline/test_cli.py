@@ -224,6 +224,8 @@ def test_plain_paths_with_odd_characters(tmp_path, cli):
     (("-m", "flow.lam=0.1,abc"), "Error merging override flow.lam=abc"),   # a sweep's later value too
     (("hydra.run.foo=1",), "Could not override 'hydra.run.foo'"),
     (("does/not/exist.png",), "input not found: does/not/exist.png"),
+    (("export.join.max_turn_deg=200",), "join.max_turn_deg"),          # composes, but out of its range
+    (("export.gaps.max_turn_deg=120",), "gaps.max_turn_deg"),
 ])
 def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
     proc = cli(*args, cwd=tmp_path)
