@@ -56,6 +56,17 @@ def compose_plain(conf_dir: str | Path, overrides: list[str]) -> dict:
 
 
 def main() -> None:
+    """``polyvec-train``; a bad config key or value is one ``polyvec-train: error:`` line and exit 2."""
+    from stages.errors import InputError
+
+    try:
+        _main()
+    except InputError as exc:
+        print(f"polyvec-train: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _main() -> None:
     """``polyvec-train`` (Hydra). ``--plain CONF_DIR key=value…`` composes without Hydra."""
     if len(sys.argv) > 2 and sys.argv[1] == "--plain":
         train(compose_plain(sys.argv[2], sys.argv[3:]))

@@ -212,3 +212,14 @@ def test_cpu_autocast_only_where_the_cpu_has_native_bf16(monkeypatch):
         assert cpu_autocast(True) is True and cpu_autocast(False) is False
     with pytest.raises(InputError, match="cpu_amp"):
         cpu_autocast("sometimes")
+
+
+def test_a_bad_training_value_is_one_error_line(tmp_path):
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "pipeline.train", "--plain", str(CONF), "train.cpu_amp=sometimes",
+                           f"train.out_dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "polyvec-train: error: train.cpu_amp must be true, false or auto, got 'sometimes'"], proc.stderr
+    assert not (tmp_path / "run").exists()

@@ -170,6 +170,7 @@ def train(cfg: dict) -> dict:
         The training record (steps, time, losses, validation figures, paths).
     """
     tc = cfg["train"]
+    cpu_bf16 = cpu_autocast(tc["cpu_amp"])    # checked before anything is written
     out = Path(tc["out_dir"])
     out.mkdir(parents=True, exist_ok=True)
     seed = int(tc["seed"])
@@ -230,7 +231,6 @@ def train(cfg: dict) -> dict:
     # 0.84 s (fp32), 0.65 s (channels-last), 0.54 s (bf16) on one thread of a 2-core EPYC with native
     # bf16; both together (0.41 s) give a NaN gradient in the dilated class conv, so the default is bf16
     # alone — where the CPU has it: emulated (AVX2 only) a step took 6.5 s against 0.94 s in fp32.
-    cpu_bf16 = cpu_autocast(tc["cpu_amp"])
     use_amp = bool(tc["amp"]) and (device.type == "cuda" or cpu_bf16)
     channels_last = device.type == "cuda" or bool(tc.get("channels_last"))
     if channels_last:
