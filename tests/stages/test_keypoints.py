@@ -423,7 +423,9 @@ def test_widening_the_shipped_network_keeps_its_heatmaps():
     x = torch.from_numpy(network_input(synthetic.tee(size=96).grey, 0.5))[None, None]
     with torch.inference_mode():
         (a, ai), (b, bi) = old(x), wide(x)
-    assert torch.allclose(a, b, atol=1e-5) and all(torch.allclose(p, q, atol=1e-5) for p, q in zip(ai, bi))
+    # float32 sums over the wider convolutions run in another order: up to ~1e-5 apart (maps in [-1, 1]);
+    # a widening that changed the function would be off by orders of magnitude more.
+    assert torch.allclose(a, b, atol=1e-4) and all(torch.allclose(p, q, atol=1e-4) for p, q in zip(ai, bi))
     # The new channels are live (random fan-in), so training can grow them.
     assert wide.stem.fuse[0].weight[old_cfg.level_channels[0]:].abs().sum() > 0
     assert not can_widen(old_cfg, replace(old_cfg, bottleneck_blocks=old_cfg.bottleneck_blocks + 1))
