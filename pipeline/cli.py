@@ -21,7 +21,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
-from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, write_outputs
+from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, validated_stages, write_outputs
 from pipeline.store import ArtifactStore
 from stages.errors import InputError
 
@@ -244,15 +244,10 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     out_dir = job_output_dir(cfg)
     named = resolve_inputs(inputs or cfg.get("input"), out_dir)
     images = [image for image, _ in named]
-    from pipeline.registry import active_stages
-    from pipeline.schema import validate
-
     try:
         # A value out of its range (export.join.max_turn_deg=200) is a usage error: one line, exit 2,
-        # before the store is opened (run_batch checks again for its other callers).
-        validate(cfg, ["runtime"])
-        stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
-        validate(cfg, stages)
+        # before the store is opened (run_batch checks again, for its other callers: milliseconds).
+        stages = [s.name for s in validated_stages(cfg)]
     except InputError as exc:
         raise UsageError(str(exc)) from None
     store = ArtifactStore(str(cfg.store.path))

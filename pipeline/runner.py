@@ -434,6 +434,22 @@ def close_client() -> None:
     _CLIENT, _CLIENT_SPEC = None, None
 
 
+def validated_stages(cfg) -> list:
+    """The stages a run computes (``runtime.until``), after checking the config of each and of ``runtime``.
+
+    Raises
+    ------
+    stages.errors.InputError
+        A missing, unknown or ill-typed key, or a value out of its range.
+    """
+    from pipeline.schema import validate  # it imports this module
+
+    validate(cfg, ["runtime"])
+    stages = active_stages(stage_config(cfg, "runtime")["until"])
+    validate(cfg, [s.name for s in stages])  # every key present, none unknown, values in range
+    return stages
+
+
 def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResult], None] | None = None,
               store: ArtifactStore | None = None, on_compile: Callable[[], None] | None = None) -> BatchResult:
     """Run the stage DAG over images through the content-addressed store.
@@ -456,12 +472,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     -------
     BatchResult
     """
-    from pipeline.schema import validate  # it imports this module
-
-    validate(cfg, ["runtime"])
+    stages = validated_stages(cfg)
     runtime = stage_config(cfg, "runtime")
-    stages = active_stages(runtime["until"])
-    validate(cfg, [s.name for s in stages])  # every key present, none unknown, values in range
     store = store or ArtifactStore(cfg["store"]["path"])
     store.sweep_tmp()
     t0 = time.perf_counter()

@@ -66,11 +66,12 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     if len(ends) < 2:
         return curves
     where = np.array(where)
+    outward = [end_direction(pts[n], e == 0, tangent_px) for n, e in ends]
     reach = max(max_px, max_widths * max(width))
     cos_max = np.cos(np.radians(max_turn_deg))
     pairs = []
     for a, b in cKDTree(where).query_pairs(reach):
-        (i, ei), (j, ej) = ends[a], ends[b]
+        i, j = ends[a][0], ends[b][0]
         if i == j:
             continue
         gap = where[b] - where[a]
@@ -78,8 +79,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
         if d < 1e-9 or d > max(max_px, max_widths * 0.5 * (width[i] + width[j])):
             continue
         u = gap / d
-        if end_direction(pts[i], ei == 0, tangent_px) @ u >= cos_max and \
-                end_direction(pts[j], ej == 0, tangent_px) @ -u >= cos_max:
+        if outward[a] @ u >= cos_max and outward[b] @ -u >= cos_max:
             pairs.append((d, a, b))
     link: dict = {}
     for _, a, b in sorted(pairs):

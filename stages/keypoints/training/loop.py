@@ -81,8 +81,10 @@ def cpu_autocast(cpu_amp) -> bool:
     ``auto`` follows ``keypoints.precision: auto`` (:func:`~stages.keypoints.inference.use_bf16`):
     bf16 only where the CPU has native bf16 instructions.
     """
-    if cpu_amp is True or cpu_amp is False or cpu_amp == "auto":
-        return use_bf16({True: "bf16", False: "fp32"}.get(cpu_amp, cpu_amp))
+    if isinstance(cpu_amp, bool):
+        return cpu_amp
+    if cpu_amp == "auto":
+        return use_bf16("auto")
     raise InputError(f"train.cpu_amp must be true, false or auto, got {cpu_amp!r}")
 
 
