@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m pipeline.validation_cases OUT_DIR [--per-category 2] [--stroke3 24] [key=value …]
+    python -m pipeline.validation_cases OUT_DIR [--per-category 2] [--stroke3 24] [--min-strokes 1] [key=value …]
 
 The human-stroke drawings of the categories that :func:`stages.keypoints.training.category_split` holds out of
 training (``train.vector.holdout`` of ``train.vector.files``), and optionally the first symbols of
@@ -39,7 +39,8 @@ def _style_config(gcfg, style: str):
     return replace(gcfg, pencil_prob=1.0, **common)
 
 
-def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, seed: int = 7) -> list[str]:
+def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, seed: int = 7,
+                min_strokes: int = 1) -> list[str]:
     """Render the validation split into ``out`` (see the module docstring).
 
     Parameters
@@ -50,6 +51,10 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
         Folder to write (created).
     per_category : int
         Drawings taken from each held-out category (its first ones), each in both styles.
+    min_strokes : int
+        Only drawings of at least this many pen strokes count (1 = all). The default split's drawings
+        have 3 strokes at the median; ``--min-strokes 6`` gives a split of busier drawings, with more
+        junctions per drawing. Names keep the drawing's index in its category.
     stroke3 : int
         Symbols taken from the stroke-3 ``valid`` split, each in both styles (0 = none).
     seed : int
@@ -67,9 +72,11 @@ def write_cases(cfg: dict, out: Path, per_category: int = 2, stroke3: int = 24, 
     _, valid = vector_split(vcfg)
     drawings: list[tuple[str, list[np.ndarray]]] = []
     for f in valid:
-        kept = [d for d in read_quickdraw_ndjson(f) if any(len(s) >= 2 for s in d)]
-        for i, d in enumerate(kept[:per_category]):
-            drawings.append((f"val_qd_{Path(f).stem}_{i}", [s for s in d if len(s) >= 2]))
+        kept = [[s for s in d if len(s) >= 2] for d in read_quickdraw_ndjson(f)]
+        kept = [d for d in kept if d]
+        busy = [(i, d) for i, d in enumerate(kept) if len(d) >= min_strokes]
+        for i, d in busy[:per_category]:
+            drawings.append((f"val_qd_{Path(f).stem}_{i}", d))
     if stroke3 > 0:
         symbols = vector_pool(dict(vcfg, files=[]), "valid")["stroke3"]  # simplified as in training
         drawings += [(f"val_s3_{i}", d) for i, d in enumerate(symbols[:stroke3])]
@@ -152,10 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-category", type=int, default=2)
     ap.add_argument("--stroke3", type=int, default=24)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--min-strokes", type=int, default=1, help="only drawings of at least this many strokes")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. train.vector.holdout=30")
-    a = ap.parse_args(argv)
+    a = ap.parse_intermixed_args(argv)  # options and key=value overrides in any order
     cfg = compose_plain(Path(conf.__file__).resolve().parent, a.overrides)
-    names = write_cases(cfg, a.out, a.per_category, a.stroke3, a.seed)
+    names = write_cases(cfg, a.out, a.per_category, a.stroke3, a.seed, a.min_strokes)
     print(f"{len(names)} validation cases written to {a.out}")
     return 0
 

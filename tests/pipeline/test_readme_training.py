@@ -59,6 +59,8 @@ def _adapt(cmd: str, work: Path) -> list[str]:
         if "--type-classifier" in out:
             out += [f"{k}={v}" for k, v in TINY.items() if k.startswith("train.type_classifier")
                     and f"{k}={v}" not in out]
+    if "--min-strokes" in out:  # the tiny drawings have two strokes
+        out[out.index("--min-strokes") + 1] = "2"
     if out[:3] == ["python", "-m", "pipeline.validation_cases"]:
         out += [f"train.vector.files=[{work / 'qd' / '*.ndjson'}]", "train.vector.holdout=2",
                 "train.vector.stroke3=[]", "--stroke3", "0"]

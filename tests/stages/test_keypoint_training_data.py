@@ -152,6 +152,30 @@ def test_validation_cases_from_held_out_categories(tmp_path):
     assert res["summary"]["cases"] == 1
 
 
+def test_busy_validation_split_keeps_only_drawings_with_enough_strokes(tmp_path, capsys):
+    from pipeline.validation_cases import main
+
+    folder = tmp_path / "qd"
+    folder.mkdir()
+    for name in ("a", "b", "c"):
+        with open(folder / f"{name}.ndjson", "w") as f:
+            for i in range(3):  # drawing i has 2 + i strokes: a T, then one more bar per drawing
+                strokes = [[[0, 100], [10 * k, 10 * k], [0, 1]] for k in range(1 + i)]
+                strokes.append([[50, 50], [0, 120], [2, 3]])
+                f.write(json.dumps({"word": name, "drawing": strokes}) + "\n")
+    common = [f"train.vector.files=[{folder / '*.ndjson'}]", "train.vector.holdout=1", "train.vector.stroke3=[]",
+              "--stroke3", "0", "--per-category", "2"]
+    assert main([str(tmp_path / "busy"), "--min-strokes", "3", *common]) == 0
+    names = sorted(p.stem for p in (tmp_path / "busy").glob("*.json"))
+    assert len(names) == 4 and {n.rsplit("_", 2)[1] for n in names} == {"1", "2"}  # drawing 0 has 2 strokes
+    for n in names:
+        d = json.loads((tmp_path / "busy" / f"{n}.json").read_text())
+        assert len(d["strokes"]) >= 3
+    assert main([str(tmp_path / "all"), *common]) == 0
+    assert {p.stem.rsplit("_", 2)[1] for p in (tmp_path / "all").glob("*.json")} == {"0", "1"}
+    assert "4 validation cases written" in capsys.readouterr().out
+
+
 @pytest.mark.shared
 def test_shared_split_holds_out_thirty_categories():
     qd = SHARED / "data" / "vector" / "quickdraw_train"
