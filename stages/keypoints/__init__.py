@@ -42,6 +42,7 @@ class KeypointsConfig:
     typing: str
     type_classifier: str | None
     threshold: float
+    junction_threshold: float | None
     min_distance: int
     restrict_to_band: bool
     band_dilation: int
@@ -59,6 +60,10 @@ class KeypointsConfig:
             raise InputError(f"typing must be 'valence' or 'argmax', got {self.typing!r}")
         if self.precision not in ("fp32", "bf16", "auto"):
             raise InputError(f"keypoints.precision must be 'fp32', 'bf16' or 'auto', got {self.precision!r}")
+        for key in ("threshold", "junction_threshold"):
+            value = getattr(self, key)
+            if value is not None and not 0.0 < value <= 1.0:
+                raise InputError(f"keypoints.{key} must be in (0, 1], got {value}")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {

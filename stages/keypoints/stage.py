@@ -36,7 +36,7 @@ from stages.config import from_section
 from stages.errors import InputError
 from stages.keypoints import (PACKAGED_PROCEDURAL, PACKAGED_TYPE_CLASSIFIER, PACKAGED_WEIGHTS, KeypointsConfig,
                               _file_hash)
-from stages.keypoints.codes import TYPE_CODES
+from stages.keypoints.codes import JUNCTION, TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
 from stages.prep import internal_scale, source_size
 
@@ -225,13 +225,21 @@ def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | 
         band = dilate_band(mask, int(cfg["band_dilation"]))
     if band is not None:
         heatmaps = heatmaps * band[None]  # untrained off the band (the loss is masked to it)
-    points, types, scores = find_keypoints(heatmaps, float(cfg["threshold"]), int(cfg["min_distance"]),
+    threshold = float(cfg["threshold"])
+    jt = cfg.get("junction_threshold")
+    junction_threshold = threshold if jt is None else float(jt)
+    points, types, scores = find_keypoints(heatmaps, min(threshold, junction_threshold), int(cfg["min_distance"]),
                                            band, bool(cfg["subpixel"]))
     heatmaps = np.clip(heatmaps, 0.0, 1.0)  # tanh heads: negative values mean "no", as 0 does
     if cfg["typing"] == "valence" and len(points) and mask is not None:
         clf = load_type_classifier(cfg["type_classifier"])
         feats = valence_features(mask, points, class_scores_at(heatmaps, points))
         types = np.asarray(TYPE_CODES, np.int8)[clf.predict(feats)]
+    if junction_threshold != threshold:
+        # Peaks are found at the lower threshold and typed; each then keeps its own type's threshold.
+        need = np.where(types == JUNCTION, junction_threshold, threshold)
+        keep = scores >= need
+        points, types, scores = points[keep], types[keep], scores[keep]
     return heatmaps, points, types, scores
 
 

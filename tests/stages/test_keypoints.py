@@ -171,6 +171,29 @@ def test_nms_threshold_distance_and_types():
     assert len(find_keypoints(hm, 0.5, 2, band=band)[0]) == 0
 
 
+def test_junction_threshold_keeps_weaker_junctions_only():
+    from stages.keypoints import keypoints_from_heatmaps
+
+    hm = np.zeros((4, 40, 40), np.float32)
+    for (y, x), h1, cls in (((5, 5), 0.45, 2), ((20, 20), 0.45, 1), ((30, 8), 0.8, 1), ((8, 30), 0.35, 2)):
+        hm[0, y, x] = h1
+        hm[cls, y, x] = 0.9  # class channel 1 = endpoint, 2 = junction
+    cfg = dict(_cfg(), typing="argmax", subpixel=False, restrict_to_band=False)
+
+    def kept(**over):
+        _, pts, types, scores = keypoints_from_heatmaps(dict(cfg, **over), hm, None)
+        return sorted((int(p[0]), int(p[1]), int(t)) for p, t in zip(pts, types))
+
+    assert kept() == [(8, 30, 1)]  # junction_threshold null: one threshold (0.5) for every type
+    assert kept(junction_threshold=0.4) == [(5, 5, 3), (8, 30, 1)]  # the 0.45 junction, not the 0.45 end
+    assert kept(junction_threshold=0.3) == [(5, 5, 3), (8, 30, 1), (30, 8, 3)]
+    assert kept(threshold=0.4, junction_threshold=0.6) == [(8, 30, 1), (20, 20, 1)]  # stricter on junctions
+    with pytest.raises(InputError, match="junction_threshold"):
+        from stages.config import from_section
+        from stages.keypoints import KeypointsConfig
+        from_section(KeypointsConfig, dict(_cfg(), junction_threshold=1.5), "keypoints")
+
+
 def test_subpixel_refinement():
     hm = np.zeros((4, 20, 20), np.float32)
     hm[0] = gaussian_heatmaps((20, 20), np.array([[10.2, 7.8]]), np.array([1]), 2.0)[0]
