@@ -200,7 +200,7 @@ def keypoints_from_heatmaps(cfg: dict, heatmaps: np.ndarray, mask: np.ndarray | 
     Parameters
     ----------
     cfg : dict
-        The ``keypoints`` section (``restrict_to_band``, ``band_dilation``, ``threshold``,
+        The ``keypoints`` section (``restrict_to_band``, ``band_dilation``, ``threshold``, ``junction_threshold``,
         ``min_distance``, ``subpixel``, ``typing``, ``type_classifier``).
     heatmaps : numpy.ndarray
         (4, H, W) network output (H1 possibly an ensemble mean).
