@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pipeline.train import compose_plain
-from stages.keypoints.training import category_split, train, vector_pool
+from stages.keypoints.training import category_split, draw_vector, stroke_count_cdf, train, vector_pool
 from stages.keypoints.training.generator import drawing_from_strokes
 from stages.keypoints.training.human_strokes import read_stroke3
 from tests.conftest import train_configs
@@ -81,6 +81,27 @@ def test_vector_pool_holds_whole_categories_out(tmp_path):
     assert len(train_pool["stroke3"][1][0]) == 2
     with pytest.raises(ValueError):
         vector_pool(vcfg, "test")
+
+
+def test_busy_drawings_are_drawn_by_their_stroke_count():
+    """``train.vector.stroke_count_power`` 1: every stroke of the pool equally likely, not every drawing."""
+    t = np.linspace(0, 1, 5)
+    one = [np.stack([10 + 80 * t, 10 + 0 * t], 1)]
+    nine = [np.stack([10 + 80 * t, 10 + 9 * k + 0 * t], 1) for k in range(9)]
+    pool = {"ndjson": [one, nine], "stroke3": []}
+    vcfg = {"size": [48, 48]}
+    generator, rules = train_configs()
+
+    def busy_share(cdf, n=120):
+        rng = np.random.default_rng(5)
+        return np.mean([len(draw_vector(rng, pool, vcfg, generator, rules, ndjson_cdf=cdf).strokes) == 9
+                        for _ in range(n)])
+
+    assert stroke_count_cdf(pool["ndjson"], 0.0) is None                      # uniform, the old stream
+    assert 0.35 < busy_share(None) < 0.65
+    assert busy_share(stroke_count_cdf(pool["ndjson"], 1.0)) > 0.8            # 9 of 10 strokes
+    with pytest.raises(ValueError, match="stroke_count_power"):
+        stroke_count_cdf(pool["ndjson"], -1.0)
 
 
 def test_thin_aliased_style_is_thin_and_labels_no_corner_on_a_circle():

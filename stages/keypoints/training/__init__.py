@@ -38,7 +38,8 @@ from stages.lazy import lazy_names
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.keypoints.training.data": ("category_split", "draw_vector", "prepare_sample", "render_vector",
-                                       "validation_set", "vector_pool", "vector_samples", "vector_split"),
+                                       "stroke_count_cdf", "validation_set", "vector_pool", "vector_samples",
+                                       "vector_split"),
     "stages.keypoints.training.loop": ("evaluate", "export_weights", "train", "train_class_branch"),
     "stages.keypoints.training.type_classifier": ("fit_type_classifier", "train_type_classifier",
                                                   "type_classifier_data"),

@@ -110,6 +110,7 @@ class VectorConfig:
     stroke3_simplify: float
     renders: int
     size: list[int]
+    stroke_count_power: float     # detector training: Quick, Draw! draws weighted by strokes^power (0 = uniform)
 
 
 @dataclass
