@@ -13,6 +13,7 @@ import torch
 
 from pipeline.train import compose_plain
 from stages.keypoints.training import category_split, draw_vector, stroke_count_cdf, train, vector_pool
+from stages.keypoints.training.data import stroke_count_power
 from stages.keypoints.training.generator import drawing_from_strokes
 from stages.keypoints.training.human_strokes import read_stroke3
 from tests.conftest import train_configs
@@ -100,8 +101,8 @@ def test_busy_drawings_are_drawn_by_their_stroke_count():
     assert stroke_count_cdf(pool["ndjson"], 0.0) is None                      # uniform, the old stream
     assert 0.35 < busy_share(None) < 0.65
     assert busy_share(stroke_count_cdf(pool["ndjson"], 1.0)) > 0.8            # 9 of 10 strokes
-    with pytest.raises(ValueError, match="stroke_count_power"):
-        stroke_count_cdf(pool["ndjson"], -1.0)
+    with pytest.raises(ValueError, match="stroke_count_power must be >= 0"):
+        stroke_count_power({"stroke_count_power": -1.0})
 
 
 def test_thin_aliased_style_is_thin_and_labels_no_corner_on_a_circle():
@@ -263,8 +264,11 @@ def test_a_bad_training_value_is_one_error_line(tmp_path):
     import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-m", "pipeline.train", "--plain", str(CONF), "train.cpu_amp=sometimes",
-                           f"train.out_dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "polyvec-train: error: train.cpu_amp must be true, false or auto, got 'sometimes'"], proc.stderr
-    assert not (tmp_path / "run").exists()
+    for bad, line in (("train.cpu_amp=sometimes", "train.cpu_amp must be true, false or auto, got 'sometimes'"),
+                      ("train.vector.stroke_count_power=-1", "train.vector.stroke_count_power must be >= 0, got -1.0")):
+        proc = subprocess.run([sys.executable, "-m", "pipeline.train", "--plain", str(CONF), bad,
+                               f"train.out_dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=120)
+        assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [f"polyvec-train: error: {line}"], \
+            proc.stderr
+        assert not (tmp_path / "run").exists()

@@ -16,6 +16,7 @@ import torch
 from skimage.measure import approximate_polygon
 
 from stages.config import from_section
+from stages.errors import InputError
 from stages.keypoints.codes import TYPE_CODES
 from stages.keypoints.inference import dilate_band, network_input
 from stages.keypoints.training.generator import GeneratorConfig, drawing_from_strokes, generate
@@ -87,7 +88,7 @@ class DrawingStream(torch.utils.data.IterableDataset):
         vprob = float(tc.get("vector_prob") or 0.0)
         vcfg = tc.get("vector") or {}
         pool = vector_pool(vcfg, "train") if vprob > 0 else {}
-        busy = stroke_count_cdf(pool.get("ndjson") or [], float(vcfg.get("stroke_count_power", 0.0)))
+        busy = stroke_count_cdf(pool.get("ndjson") or [], stroke_count_power(vcfg))
         while True:
             sample = (draw_vector(rng, pool, vcfg, gcfg, rules, ndjson_cdf=busy)
                       if pool and rng.random() < vprob else None)
@@ -232,6 +233,14 @@ def vector_pool(vcfg: dict, part: str = "train") -> dict[str, list[list[np.ndarr
     return pool
 
 
+def stroke_count_power(vcfg: dict) -> float:
+    """``train.vector.stroke_count_power`` (0 when absent), checked: a negative power is an InputError."""
+    power = float(vcfg.get("stroke_count_power", 0.0))
+    if not power >= 0:
+        raise InputError(f"train.vector.stroke_count_power must be >= 0, got {power}")
+    return power
+
+
 def stroke_count_cdf(drawings: list[list[np.ndarray]], power: float) -> np.ndarray | None:
     """Cumulative draw weights ∝ (number of strokes)^``power`` of ``drawings`` (None: uniform).
 
@@ -239,8 +248,6 @@ def stroke_count_cdf(drawings: list[list[np.ndarray]], power: float) -> np.ndarr
     drawings"): the training categories have 3 strokes at the median, realvec_dev's Quick, Draw!
     drawings 6.5. ``power`` 0 keeps the uniform draw and its random stream.
     """
-    if power < 0:
-        raise ValueError(f"train.vector.stroke_count_power must be >= 0, got {power}")
     if power == 0 or not drawings:
         return None
     return np.cumsum(np.array([len(d) for d in drawings], float) ** power)
