@@ -216,3 +216,28 @@ def test_every_column_has_a_unit_and_small_distances_show():
     assert column_unit("f1_2") == "0–1" and column_unit("t_flow") == "s" and column_unit("peak_rss_mb") == "MB"
     assert column_unit("duplicated_px") == "px" and column_unit("dangling") == "count"
     assert _fmt(0.2 / 1000, "chamfer") == "0.200" and _fmt(0.0004, "fid_chamfer") == "0.400"
+
+
+def test_junction_errors_match_like_the_acceptance_scorer_and_class_by_cause():
+    """tests/benchmarks/junction_errors.py: its unmatched junctions are the scorer's fn and fp."""
+    from tests.benchmarks.junction_errors import SCORER, classify, unmatched
+
+    if not (SCORER / "score.py").exists():
+        pytest.skip("../shared/tools/score.py (the acceptance scorer) is not here")
+    import sys
+
+    sys.path.insert(0, str(SCORER))
+    import score as S
+
+    rng = np.random.default_rng(4)
+    for _ in range(30):
+        pred, ref = rng.uniform(0, 40, (rng.integers(0, 8), 2)), rng.uniform(0, 40, (rng.integers(0, 8), 2))
+        _, tp, fp, fn = S.match_f1(pred, ref, 5.0)
+        missed, false = unmatched(pred, ref, 5.0)
+        assert (int(missed.sum()), int(false.sum())) == (fn, fp)
+    ends = np.array([[0.0, 0.0], [50.0, 0.0]])
+    labels = np.array([[20.0, 1.0]])
+    points, types = np.array([[21.0, 0.0], [40.0, 0.0]]), np.array([3, 5], np.int8)
+    assert classify(np.array([20.0, 0.0]), ends, 2.0, labels, points, types) == "mid lab kp=junction"
+    assert classify(np.array([41.0, 0.0]), ends, 2.0, labels, points, types) == "mid unlab kp=corner"
+    assert classify(np.array([49.0, 0.0]), ends, 2.0, labels, points, types) == "end unlab kp=none"

@@ -1,0 +1,139 @@
+"""Benchmark helper: the acceptance scorer's missed and false junctions, classed by their cause (not a test).
+
+Usage::
+
+    polyvec CASES output=OUT store.path=STORE
+    python tests/benchmarks/junction_errors.py OUT CASES STORE [--json errors.json]
+
+The junctions are the acceptance scorer's own (``../shared/tools/score.py``, ``topology`` and
+``match_f1``, imported from there and run, not copied): those of the ground-truth strokes and those of
+the output curves, matched one to one within max(5, w) px. Each missed (ground truth, unmatched) and
+false (output, unmatched) junction is classed by
+
+- where it lies: at a ground-truth stroke end (within 2 r) or mid-stroke;
+- whether a labelled junction of the case (the §4.2 rules the detector is trained on) lies within 5 px;
+- the type of the nearest detected keypoint within 5 px (the ``keypoints`` artifact in ``STORE``), or none;
+
+and for each class the table gives its count and the junction F1 median / mean over the cases if that
+class alone were right (misses found, false ones gone): where the end-to-end junction F1 is lost.
+Use it on a validation split; never to choose on the set you report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+SCORER = REPO.parent / "shared" / "tools"
+
+from pipeline.inspect import resolve  # noqa: E402
+from pipeline.store import ArtifactStore  # noqa: E402
+from stages.keypoints.codes import TYPE_CODES  # noqa: E402
+
+#: Keypoint type names by code, for the classes.
+TYPE_NAMES = dict(zip(TYPE_CODES, ("endpoint", "junction", "corner")))
+#: Radius (px) within which a label or a detected keypoint explains a junction.
+NEAR = 5.0
+
+
+def unmatched(pred: np.ndarray, ref: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which of ``ref`` and of ``pred`` the scorer's greedy one-to-one matching leaves unmatched."""
+    if len(pred) == 0 or len(ref) == 0:
+        return np.ones(len(ref), bool), np.ones(len(pred), bool)
+    d = np.linalg.norm(pred[:, None] - ref[None], axis=2)
+    used_ref, used_pred = set(), set()
+    # the same order and rule as score.match_f1
+    for i in np.argsort(d.min(1)):
+        free = np.where([k in used_ref for k in range(len(ref))], np.inf, d[i])
+        j = int(np.argmin(free))
+        if d[i, j] <= tol and j not in used_ref:
+            used_ref.add(j)
+            used_pred.add(int(i))
+    return (np.array([k not in used_ref for k in range(len(ref))]),
+            np.array([k not in used_pred for k in range(len(pred))]))
+
+
+def classify(p: np.ndarray, stroke_ends: np.ndarray, r: float, labels: np.ndarray, points: np.ndarray,
+             types: np.ndarray) -> str:
+    """``'end|mid lab|unlab kp=TYPE|none'`` of one junction position ``p``."""
+    where = "end" if len(stroke_ends) and np.linalg.norm(stroke_ends - p, axis=1).min() <= 2 * r else "mid"
+    lab = "lab" if len(labels) and np.linalg.norm(labels - p, axis=1).min() <= NEAR else "unlab"
+    kp = "none"
+    if len(points):
+        d = np.linalg.norm(points - p, axis=1)
+        if d.min() <= NEAR:
+            kp = TYPE_NAMES.get(int(types[int(np.argmin(d))]), "other")
+    return f"{where} {lab} kp={kp}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out", type=Path, help="folder of <case>.svg (polyvec's output)")
+    ap.add_argument("cases", type=Path, help="folder of scored cases (<case>.png and .json)")
+    ap.add_argument("store", help="artifact store of that run (for the detected keypoints)")
+    ap.add_argument("--json", type=Path, default=None, help="write every missed / false junction here")
+    a = ap.parse_args(argv)
+    sys.path.insert(0, str(SCORER))
+    import score as S  # the acceptance scorer, run as it is
+
+    store = ArtifactStore(a.store, create=False)
+    counts: dict[str, collections.Counter] = {}
+    totals = collections.Counter()
+    rows = []
+    for case_json in sorted(a.cases.glob("*.json")):
+        png = case_json.with_suffix(".png")
+        if case_json.name.endswith(".keypoints.json") or not png.exists():
+            continue
+        gt = json.loads(case_json.read_text())
+        w = float(gt["width"])
+        r, tol = max(2.0, w), max(5.0, w)
+        strokes = [S.resample(s) for s in gt["strokes"]]
+        curves = [S.resample(c) for c in S.svg_polylines(str(a.out / f"{png.stem}.svg"))]
+        _, gj, _, _ = S.topology(strokes, r)
+        _, oj, _, _ = S.topology(curves, r)
+        kp = store.load("keypoints", resolve(store, "keypoints", None, str(png)))
+        points, types = np.asarray(kp.arrays["points"]), np.asarray(kp.arrays["types"])
+        labels = np.asarray(gt.get("junctions", []), float).reshape(-1, 2)
+        ends = np.array([s[k] for s in strokes for k in (0, -1)]).reshape(-1, 2)
+        missed, false = unmatched(oj, gj, tol)
+        c = counts.setdefault(png.stem, collections.Counter())
+        c["_truth"], c["_matched"] = len(gj), int((~missed).sum())
+        for kind, where in (("missed", gj[missed]), ("false", oj[false])):
+            for p in where:
+                cls = f"{kind} {classify(p, ends, r, labels, points, types)}"
+                c[cls] += 1
+                rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
+        totals.update(truth=len(gj), output=len(oj), matched=int((~missed).sum()))
+
+    def f1(case: collections.Counter, fixed: str | None) -> float:
+        fn = sum(v for k, v in case.items() if k.startswith("missed"))
+        fp = sum(v for k, v in case.items() if k.startswith("false"))
+        tp = case["_matched"]
+        if fixed is not None and fixed.startswith("missed"):
+            fn, tp = fn - case[fixed], tp + case[fixed]
+        elif fixed is not None:
+            fp -= case[fixed]
+        return 1.0 if tp + fp + fn == 0 else 2 * tp / (2 * tp + fp + fn)
+
+    classes = sorted({k for c in counts.values() for k in c if not k.startswith("_")})
+    print(f"{len(counts)} cases of {a.cases}: {totals['truth']} scorer junctions in the ground truth, "
+          f"{totals['output']} in the output, {totals['matched']} matched")
+    print(f"{'class':<34}{'count':>7}  junction F1 median / mean if right")
+    for cls in [None] + classes:
+        vals = [f1(c, cls) for c in counts.values()]
+        n = sum(c[cls] for c in counts.values()) if cls else 0
+        print(f"{cls or '(as it is)':<34}{n:>7}  {np.median(vals):.3f} / {np.mean(vals):.3f}")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
