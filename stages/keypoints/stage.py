@@ -14,15 +14,13 @@ and are trained by ``polyvec-train`` on procedural drawings (:mod:`stages.keypoi
 held-out human strokes. ``STAGE_VERSION`` (:mod:`stages.keypoints`) carries a short hash of every shipped
 file, so new weights invalidate cached results.
 
-Detection ensemble (``detection_ensemble``, a departure from the paper's single network): H1 is the
-mean of the main network's H1 and that of the listed networks — by default the procedural-only
-detector the main network was fine-tuned from (``weights/keypoints_procedural.pt``). Why: fine-tuning
-on human strokes raised recall on realvec_dev (0.840 → 0.869) and class accuracy, but fired more
-false corners (precision 0.912 → 0.853, one-to-one F1 0.874 → 0.861); the mean of the two H1 maps
-keeps most of the recall with the old precision (F1 0.877, P 0.893, R 0.862). The class maps stay
-the main network's, on which the typing perceptron is trained. It costs a second pass of the trunk
-(the class branch is skipped there).
-``detection_ensemble: []`` runs the main network alone.
+Detection ensemble (``detection_ensemble``, an option; off by default since phase 16): H1 is the mean
+of the main network's H1 and that of the listed networks, e.g. the procedural-only detector
+(``packaged_procedural``, ``weights/keypoints_procedural.pt``); the class maps stay the main network's,
+and each listed network costs a pass of its trunk. Phases 7–15 shipped with it, because those
+fine-tuned networks fired false corners alone. Why off now: phase 16 (trained on busy drawings) alone
+ties the pair at the keypoint level and beats it end to end over both validation splits, in one pass
+(numbers: MODEL_CARD.md, phase 16). ``detection_ensemble: []`` runs the main network alone.
 """
 
 from __future__ import annotations

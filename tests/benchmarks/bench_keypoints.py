@@ -1,6 +1,7 @@
 """Benchmark: the keypoints stage on a 700×700 drawing (target ≤ 1.5 s on one thread of a 2-core CPU).
 
-Run: ``python tests/benchmarks/bench_keypoints.py [--repeat 5] [--size 700]``. Prints the time of
+Run: ``python tests/benchmarks/bench_keypoints.py [--repeat 5] [--size 700] [KEY=VALUE ...]`` (overrides of
+the keypoints section, e.g. ``'detection_ensemble=[packaged_procedural]' precision=fp32``). Prints the time of
 ``stages.keypoints.run`` (1 torch thread, as inside a worker — the stage sets it) and, for comparison,
 of the network alone with 2 threads. Not a test: timings depend on the machine and its load.
 """
@@ -44,8 +45,14 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--size", type=int, default=700)
+    ap.add_argument("overrides", nargs="*", help="KEY=VALUE of the keypoints section (YAML values)")
     args = ap.parse_args()
     cfg = yaml.safe_load((ROOT / "conf" / "keypoints" / "default.yaml").read_text())
+    for item in args.overrides:
+        key, _, value = item.partition("=")
+        if key not in cfg:
+            raise SystemExit(f"bench_keypoints: no key {key!r} in the keypoints section")
+        cfg[key] = yaml.safe_load(value)
     prep = drawing(args.size)
     model, name = load_model(cfg["weights"])
     run(cfg, prep=prep)  # warm-up (model load, allocator)

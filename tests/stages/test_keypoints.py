@@ -261,14 +261,15 @@ def test_run_artifact_contract():
 
 
 def test_detection_ensemble_averages_h1_and_keeps_class_maps():
-    """The default config averages H1 of the main and the procedural network; the class maps (which
-    the typing perceptron reads) stay the main network's; ``detection_ensemble: []`` is the main one alone."""
+    """``detection_ensemble: [packaged_procedural]`` averages H1 of the main and the procedural network;
+    the class maps (which the typing perceptron reads) stay the main network's; the default, ``[]``, is
+    the main one alone (one pass: phase 16 alone ties the pair, MODEL_CARD)."""
     d = synthetic.cross(size=64)
     prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
     cfg = _cfg()
-    assert cfg["detection_ensemble"] == ["packaged_procedural"]
-    both = run(cfg, prep=prep)
-    main = run(dict(cfg, detection_ensemble=[]), prep=prep)
+    assert cfg["detection_ensemble"] == []
+    both = run(dict(cfg, detection_ensemble=["packaged_procedural"]), prep=prep)
+    main = run(cfg, prep=prep)
     other = run(dict(cfg, weights="packaged_procedural", detection_ensemble=[]), prep=prep)
     np.testing.assert_array_equal(both["heatmaps"][1:], main["heatmaps"][1:])
     lo = np.minimum(main["heatmaps"][0], other["heatmaps"][0]) - 1e-5
@@ -501,7 +502,8 @@ def test_readers_on_shared_vector_data():
 
 def test_eval_keypoints_cli_scores_a_folder(tmp_path):
     """``python -m pipeline.eval_keypoints DIR`` scores drawings against their JSON keypoints, with the
-    config's detection ensemble by default and the main network alone with a bare ``--ensemble``."""
+    config's detection ensemble by default (none), the named networks with ``--ensemble W…`` and the
+    main network alone with a bare ``--ensemble``."""
     from PIL import Image
 
     from pipeline.eval_keypoints import main
@@ -511,7 +513,7 @@ def test_eval_keypoints_cli_scores_a_folder(tmp_path):
     ends = [p.tolist() for s in d.strokes for p in (s[0], s[-1])]
     centre = np.mean([s.mean(0) for s in d.strokes], 0).tolist()
     (tmp_path / "x.json").write_text(json.dumps({"endpoints": ends, "junctions": [centre], "corners": []}))
-    for extra, procedural in (([], True), (["--ensemble"], False)):
+    for extra, procedural in (([], False), (["--ensemble", "packaged_procedural"], True), (["--ensemble"], False)):
         out = tmp_path / f"kp{len(extra)}.json"
         assert main([str(tmp_path), "--json", str(out), *extra]) == 0
         s = json.loads(out.read_text())["summary"]
