@@ -12,7 +12,8 @@ false (output, unmatched) junction is classed by
 
 - where it lies: at a ground-truth stroke end (within 2 r) or mid-stroke;
 - whether a labelled junction of the case (the §4.2 rules the detector is trained on) lies within 5 px;
-- the type of the nearest detected keypoint within 5 px (the ``keypoints`` artifact in ``STORE``), or none;
+- the type of the nearest detected keypoint within 5 px (the image's newest ``keypoints`` artifact in
+  ``STORE``: run it right after the ``polyvec`` run it explains, or on a store of that run alone), or none;
 
 and for each class the table gives its count and the junction F1 median / mean over the cases if that
 class alone were right (misses found, false ones gone): where the end-to-end junction F1 is lost.
@@ -48,16 +49,13 @@ def unmatched(pred: np.ndarray, ref: np.ndarray, tol: float) -> tuple[np.ndarray
     if len(pred) == 0 or len(ref) == 0:
         return np.ones(len(ref), bool), np.ones(len(pred), bool)
     d = np.linalg.norm(pred[:, None] - ref[None], axis=2)
-    used_ref, used_pred = set(), set()
+    ref_free, pred_free = np.ones(len(ref), bool), np.ones(len(pred), bool)
     # the same order and rule as score.match_f1
     for i in np.argsort(d.min(1)):
-        free = np.where([k in used_ref for k in range(len(ref))], np.inf, d[i])
-        j = int(np.argmin(free))
-        if d[i, j] <= tol and j not in used_ref:
-            used_ref.add(j)
-            used_pred.add(int(i))
-    return (np.array([k not in used_ref for k in range(len(ref))]),
-            np.array([k not in used_pred for k in range(len(pred))]))
+        j = int(np.argmin(np.where(ref_free, d[i], np.inf)))
+        if d[i, j] <= tol and ref_free[j]:
+            ref_free[j] = pred_free[i] = False
+    return ref_free, pred_free
 
 
 def classify(p: np.ndarray, stroke_ends: np.ndarray, r: float, labels: np.ndarray, points: np.ndarray,
@@ -104,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         ends = np.array([s[k] for s in strokes for k in (0, -1)]).reshape(-1, 2)
         missed, false = unmatched(oj, gj, tol)
         c = counts.setdefault(png.stem, collections.Counter())
-        c["_truth"], c["_matched"] = len(gj), int((~missed).sum())
+        c["_matched"] = int((~missed).sum())
         for kind, where in (("missed", gj[missed]), ("false", oj[false])):
             for p in where:
                 cls = f"{kind} {classify(p, ends, r, labels, points, types)}"

@@ -244,9 +244,10 @@ def stroke_count_power(vcfg: dict) -> float:
 def stroke_count_cdf(drawings: list[list[np.ndarray]], power: float) -> np.ndarray | None:
     """Cumulative draw weights ∝ (number of strokes)^``power`` of ``drawings`` (None: uniform).
 
-    The held-out human drawings the detector misses junctions on are busy (MODEL_CARD, "Busy
-    drawings"): the training categories have 3 strokes at the median, realvec_dev's Quick, Draw!
-    drawings 6.5. ``power`` 0 keeps the uniform draw and its random stream.
+    The detector misses end-to-end junctions on busy drawings (the validation split's drawings of 6+
+    strokes, MODEL_CARD "Busy drawings"), while the training categories have 3 strokes at the median;
+    ``power`` 1 makes every stroke of the pool, not every drawing, equally likely. ``power`` 0 keeps the
+    uniform draw and its random stream.
     """
     if power == 0 or not drawings:
         return None
