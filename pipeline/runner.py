@@ -175,8 +175,8 @@ def _store(url: str) -> ArtifactStore:
 def _pin_threads(alone: bool = False) -> None:
     """One thread per task for torch and numba (worker processes also get THREAD_ENV at spawn).
 
-    ``alone``: the task is the only one running (in-process): numba's parallel kernels (the flow's
-    paths, whose results do not depend on the thread count) may use every thread of its pool; torch
+    ``alone``: the task is the only one running (in-process): the flow may share its paths among
+    numba's thread count of threads (``numba.get_num_threads``; its results do not depend on it); torch
     stays at one (the keypoints stage sets its own ``torch_threads``). NUMBA_NUM_THREADS is never
     changed in a running process: numba re-reads its environment when it compiles and refuses a
     value that differs from the thread pool it already launched.

@@ -29,7 +29,7 @@ KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section
 #: Stages whose kernels a background process compiles.
 WARMED = ("graph", "topology", "flow")
 #: The stages one background process warms, in order: topology's one kernel (~1 s) is compiled by
-#: the flow's process before the flow's (~8 s): topology runs first, after the graph (the critical
+#: the flow's process before the flow's (~5 s): topology runs first, after the graph (the critical
 #: path of a first run), while the flow's own warm-up has seconds to spare.
 PROCESSES = (("graph",), ("topology", "flow"))
 #: Longest wait for a warm-up before the stage compiles on its own (s).

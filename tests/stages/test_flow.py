@@ -305,6 +305,47 @@ def test_a_subset_of_the_paths_flows_bit_identically_to_all_of_them():
         assert pieced.arrays[name].dtype == a.dtype and pieced.arrays[name].tobytes() == a.tobytes()
 
 
+def test_paths_shared_between_threads_flow_bit_identically_to_one_thread():
+    """The flow's threads each run the kernel on their own share of the paths (the kernel releases
+    the GIL): any thread count gives the same curves and energies, to the last bit."""
+    import numba
+
+    d = synthetic.cross()
+    c0, c2, _ = analytic_field(d)
+    paths = [noisy_path(*d.strokes[k % 2], n=10 + 7 * k, noise=0.3, seed=k)[0] for k in range(7)]
+    widths = [np.full(len(xy), 3.0) for xy in paths]
+    interest = [np.linspace(1.0, 30.0, len(xy)) for xy in paths]
+    p = params(iterations=150)
+    before = numba.get_num_threads()
+    runs = []
+    try:
+        for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(threads)
+            runs.append(flow.polyvector_flow(c0, c2, paths, widths, interest, p))
+    finally:
+        numba.set_num_threads(before)
+    for other in runs[1:]:
+        for a, b in zip(runs[0].curves, other.curves):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(runs[0].energies, other.energies)
+        np.testing.assert_array_equal(runs[0].rejected, other.rejected)
+
+
+def test_split_paths_shares_every_path_once_longest_first_and_evenly():
+    from stages.flow.stage import split_paths
+
+    sizes = np.array([5, 400, 30, 30, 250, 8, 120, 90, 3])
+    shares = split_paths(sizes, 3)
+    assert len(shares) == 3
+    assert sorted(np.concatenate(shares).tolist()) == list(range(len(sizes)))
+    for share in shares:
+        assert np.all(np.diff(sizes[share]) <= 0)                  # longest first within a share
+    loads = [int(sizes[share].sum()) for share in shares]
+    assert max(loads) - min(loads) <= sizes.max()                 # greedy: within one path of even
+    assert [s.tolist() for s in split_paths(sizes, 1)] == [np.argsort(-sizes, kind="stable").tolist()]
+    assert len(split_paths(sizes[:2], 8)) == 2                     # never more shares than paths
+
+
 def test_degenerate_paths_are_returned_unchanged():
     c0 = np.zeros((20, 20), complex)
     res = flow.polyvector_flow(c0, c0, [np.array([[3.0, 4.0]]), np.array([[3.0, 4.0], [3.0, 4.0]]),
