@@ -43,9 +43,9 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   (regrown ×1.25 per accepted step up to α), so the flow never raises an energy whatever α.  The
   iteration after an undo re-assembles the restored iterate's system from stored step-independent
   row coefficients and is not checked again (its energy is known).  The iteration count stays
-  fixed (no convergence test), as in the paper, but at 600, not the paper's 1500: past a few hundred
-  iterations the length term keeps pulling the curves off the stroke centres (validation split:
-  chamfer to the drawn strokes 0.237 → 0.228 px, topology unchanged; stages/DECISIONS.md).
+  fixed (no convergence test), as in the paper, but at 400, not the paper's 1500: past a few hundred
+  iterations the length term keeps pulling the curves off the stroke centres (both validation splits:
+  chamfer to the drawn strokes lower at 400 than at 600 and 1500, topology a tie; stages/DECISIONS.md).
 * **Bilinear field lookup with its exact derivative** (the :func:`stages.geometry.bilinear`
   convention: pixel centres at +0.5, zero outside the image) instead of the code's nearest-pixel
   lookup with central differences: the energy the flow lowers is then the one it differentiates.
