@@ -253,6 +253,26 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
                 paths.append({"vertices": list(key), "arcs": arcs,
                               "through": [v for v in key[1:-1] if v in terminals]})
         orphans = {c.uid: c for c in chains if c.uid not in used_uid}
+        if orphans:
+            # A chain that only paths beyond the per-pair cap use (a spiral's outer ring between two key
+            # vertices that shorter routes also join) keeps the shortest allowed path through it:
+            # promotion cannot help when both its ends are key vertices already.
+            rescue: dict[int, tuple] = {}
+            for key, (length, seq, flipped) in found.items():
+                for k in seq:
+                    uid = chains[k].uid
+                    if uid in orphans and (uid not in rescue or (length, key) < rescue[uid][:2]):
+                        rescue[uid] = (length, key, seq, flipped)
+            for length, key, seq, flipped in sorted({r[1]: r for r in rescue.values()}.values(), key=lambda x: (x[0], x[1])):
+                if all(chains[k].uid in used_uid for k in seq):
+                    continue
+                arcs = [a for k in seq for a in chains[k].arcs]
+                if flipped:
+                    arcs = [int(g.arc_rev[a]) for a in arcs[::-1]]
+                used_uid.update(chains[k].uid for k in seq)
+                paths.append({"vertices": list(key), "arcs": arcs,
+                              "through": [v for v in key[1:-1] if v in terminals]})
+            orphans = {uid: c for uid, c in orphans.items() if uid not in used_uid}
         promote = set()
         for c in orphans.values():
             promote.update(v for v in (c.start, c.end) if v not in terminals)

@@ -73,7 +73,9 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   single keypoint is representable.
 * **No big-component fallback and no terminal cap.**  Everything above scales with the component.
 * Subgraph chains that no allowed path can use (a forbidden turn, or the enumeration budget) get
-  their non-key ends promoted to synthetic key vertices, so the candidates always cover the subgraph.
+  their non-key ends promoted to synthetic key vertices, and a chain that only paths past the
+  per-pair cap (``max_paths_per_pair``) use keeps the shortest of them, so the candidates always cover
+  the subgraph (without it a spiral's outer ring between two key vertices lost every candidate).
 * A vertex claimed by two keypoints keeps the nearer keypoint.
 * **Corner and junction keypoints at the ink's edge** (``keypoint_min_depth``, not in the paper:
   the authors move every key vertex exactly onto its keypoint).  Where two strokes share one band,

@@ -204,6 +204,19 @@ def test_loop_with_one_corner_keypoint_is_covered():
     assert all(0 in p["end_keypoints"] for p in art.data["paths"])
 
 
+def test_a_chain_only_longer_paths_use_keeps_one_past_the_per_pair_cap():
+    """Two corners on a circle join by a short and a long arc: with one path kept per pair of key
+    vertices the long arc used to have no candidate at all (both its ends are key vertices, so no
+    synthetic key vertex could be promoted) and a whole stroke was missing from the output."""
+    d = synthetic.circle()
+    ring = d.strokes[0]
+    a, b = ring[0], ring[len(ring) * 100 // 360]
+    art, inputs = _run(d, keypoints=[(a[0], a[1], 5), (b[0], b[1], 5)], max_paths_per_pair=1)
+    assert _uncovered(art, inputs) == 0
+    assert art.data["counts"]["band_pixels_covered"] == art.data["counts"]["band_pixels"]
+    assert sorted(_pairs(art)) == [(0, 1), (0, 1)]
+
+
 def test_loop_hanging_from_a_junction_is_a_closed_path():
     """A lollipop: the coverage loop walks round the loop back to its junction key vertex."""
     t = np.linspace(0, 2 * np.pi, 120)
