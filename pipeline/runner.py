@@ -176,7 +176,7 @@ def _pin_threads(alone: bool = False) -> None:
     """One thread per task for torch and numba (worker processes also get THREAD_ENV at spawn).
 
     ``alone``: the task is the only one running (in-process): the flow may share its paths among
-    numba's thread count of threads (``numba.get_num_threads``; its results do not depend on it); torch
+    ``numba.get_num_threads()`` threads (its results do not depend on their number); torch
     stays at one (the keypoints stage sets its own ``torch_threads``). NUMBA_NUM_THREADS is never
     changed in a running process: numba re-reads its environment when it compiles and refuses a
     value that differs from the thread pool it already launched.
@@ -514,14 +514,13 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             if sync:
                 _run_sync(pending, store.url, batch, report,
                           in_child=("keypoints",) if runtime["keypoints_process"] else ())
+            else:
+                client = get_client(runtime)
+                if runtime["scheduler_address"]:
+                    check_store_reachable(client, store)
+                _run_dask(pending, store.url, batch, report, client)
         finally:
-            if sync:
-                warmup.stop()
-        if not sync:
-            client = get_client(runtime)
-            if runtime["scheduler_address"]:
-                check_store_reachable(client, store)
-            _run_dask(pending, store.url, batch, report, client)
+            warmup.stop()  # nothing to stop unless in-process warm-ups were started
     batch.wall_s = time.perf_counter() - t0
     return batch
 

@@ -244,14 +244,17 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
             by_pair.setdefault((min(key[0], key[-1]), max(key[0], key[-1])), []).append((length, key, seq, flipped))
         paths = []
         used_uid = set()
+
+        def keep(key: tuple, seq, flipped: bool) -> None:
+            arcs = [a for k in seq for a in chains[k].arcs]
+            if flipped:                                      # the key is the reversed walk
+                arcs = [int(g.arc_rev[a]) for a in arcs[::-1]]
+            used_uid.update(chains[k].uid for k in seq)
+            paths.append({"vertices": list(key), "arcs": arcs, "through": [v for v in key[1:-1] if v in terminals]})
+
         for pair in sorted(by_pair):
             for length, key, seq, flipped in sorted(by_pair[pair], key=lambda x: (x[0], x[1]))[:max_paths_per_pair]:
-                arcs = [a for k in seq for a in chains[k].arcs]
-                if flipped:                                  # the key is the reversed walk
-                    arcs = [int(g.arc_rev[a]) for a in arcs[::-1]]
-                used_uid.update(chains[k].uid for k in seq)
-                paths.append({"vertices": list(key), "arcs": arcs,
-                              "through": [v for v in key[1:-1] if v in terminals]})
+                keep(key, seq, flipped)
         orphans = {c.uid: c for c in chains if c.uid not in used_uid}
         if orphans:
             # A chain that only paths beyond the per-pair cap use (a spiral's outer ring between two key
@@ -264,14 +267,8 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
                     if uid in orphans and (uid not in rescue or (length, key) < rescue[uid][:2]):
                         rescue[uid] = (length, key, seq, flipped)
             for length, key, seq, flipped in sorted({r[1]: r for r in rescue.values()}.values(), key=lambda x: (x[0], x[1])):
-                if all(chains[k].uid in used_uid for k in seq):
-                    continue
-                arcs = [a for k in seq for a in chains[k].arcs]
-                if flipped:
-                    arcs = [int(g.arc_rev[a]) for a in arcs[::-1]]
-                used_uid.update(chains[k].uid for k in seq)
-                paths.append({"vertices": list(key), "arcs": arcs,
-                              "through": [v for v in key[1:-1] if v in terminals]})
+                if not all(chains[k].uid in used_uid for k in seq):
+                    keep(key, seq, flipped)
             orphans = {uid: c for uid, c in orphans.items() if uid not in used_uid}
         promote = set()
         for c in orphans.values():
