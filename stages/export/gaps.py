@@ -6,9 +6,9 @@ Described in :mod:`stages.export.stage` (``export.gaps``); measurements in stage
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from stages.export.corners import join_linked
+from stages.export.end_index import _PointGrid
 from stages.export.joins import end_direction
 
 #: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of
@@ -47,8 +47,11 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     if len(curves) < 2:
         return curves
     pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
-    owner = np.concatenate([np.full(len(p), n) for n, p in enumerate(pts)])
-    tree = cKDTree(np.concatenate(pts))
+    # The export's own grid, not scipy.spatial: a λ re-run (flow → select → export) then loads no
+    # scipy.spatial, whose import cost about a tenth of that re-run.
+    grid = _PointGrid(FREE_PX)
+    for n, p in enumerate(pts):
+        grid.add(n, p)
     width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
     ends, where = [], []
     for n, p in enumerate(pts):
@@ -59,7 +62,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
             q = p[0 if e == 0 else -1]
             if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
                 continue                                   # a closed loop's end meets its own start
-            if any(owner[k] != n for k in tree.query_ball_point(q, near)):
+            if any(o != n and _any_within(pts[o][idx], q, near) for o, idx in grid.near(q, near).items()):
                 continue                                   # at a junction, or beside another curve
             ends.append((n, e))
             where.append(q)
@@ -70,7 +73,11 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     reach = max(max_px, max_widths * max(width))
     cos_max = np.cos(np.radians(max_turn_deg))
     pairs = []
-    for a, b in cKDTree(where).query_pairs(reach):
+    end_grid = _PointGrid(reach)
+    for a, q in enumerate(where):
+        end_grid.add(a, q[None])
+    for a, b in ((a, b) for a in range(len(ends)) for b in end_grid.near(where[a], reach)
+                 if b > a and _any_within(where[b][None], where[a], reach)):
         i, j = ends[a][0], ends[b][0]
         if i == j:
             continue
@@ -86,3 +93,9 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
         if ends[a] not in link and ends[b] not in link:
             link[ends[a]], link[ends[b]] = ends[b], ends[a]
     return join_linked(curves, link, corner_joints=False) if link else curves
+
+
+def _any_within(points: np.ndarray, q: np.ndarray, r: float) -> bool:
+    """Whether any of ``points`` ((n, 2)) lies within ``r`` of ``q`` (squared distances, as k-d trees test)."""
+    d = np.asarray(points, np.float64) - q
+    return bool(np.any(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r * r))

@@ -13,6 +13,7 @@ from stages.export.end_index import _SAME_POINT_PX, _EndIndex, _end_state, _firs
 from stages.geometry import arc_length, point_at_arc, polyline_length, turn_deg, unit
 
 JOINABLE_TYPES = (0, 3)      # synthetic ends and junctions; never endpoints (1) or sharp corners (5)
+_MIDPOINT_CELL_PX = 4.0     # cell of the segment-midpoint grid of the overshoot extension (a few segments per cell)
 
 
 def end_direction(points: np.ndarray, at_start: bool, arc_px: float) -> np.ndarray:
@@ -505,19 +506,20 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
     -------
     list of dict
     """
-    from scipy.spatial import cKDTree
-
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
     h, w_img = mask.shape
-    # Every curve's segments, stacked once, for the clearance test; a tree of their midpoints finds
+    # Every curve's segments, stacked once, for the clearance test; a grid of their midpoints finds
     # the few near a tip (a segment within r of it has its midpoint within r + half the longest
-    # segment), where testing every segment of the drawing for every end was quadratic.
+    # segment), where testing every segment of the drawing for every end was quadratic. (The
+    # export's own grid, not a scipy k-d tree: a λ re-run then loads no scipy.spatial.)
     seg_a = [c["points"][:-1] if len(c["points"]) > 1 else c["points"] for c in curves]
     seg_b = [c["points"][1:] if len(c["points"]) > 1 else c["points"] for c in curves]
-    owner = np.repeat(np.arange(len(curves)), [len(a) for a in seg_a])
+    first = np.cumsum([0] + [len(a) for a in seg_a])
+    mids = _PointGrid(_MIDPOINT_CELL_PX)
+    for i, (a, b) in enumerate(zip(seg_a, seg_b)):
+        mids.add(i, 0.5 * (a + b))
     seg_a = np.concatenate(seg_a) if curves else np.zeros((0, 2))
     seg_b = np.concatenate(seg_b) if curves else np.zeros((0, 2))
-    mids = cKDTree(0.5 * (seg_a + seg_b)) if len(seg_a) else None
     half = 0.5 * float(np.hypot(*(seg_b - seg_a).T).max()) if len(seg_a) else 0.0
     adds = []
     for i, c in enumerate(curves):
@@ -545,8 +547,11 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             pts = c["points"] if e == 0 else c["points"][::-1]
             arc = arc_length(pts)
             own = pts[arc > 2.0 * ln]
-            cand = np.asarray(mids.query_ball_point(tip, clearance * ln + half), np.int64)
-            others = cand[owner[cand] != i]
+            reach = clearance * ln + half
+            others = np.array([first[o] + k for o, idx in mids.near(tip, reach).items() if o != i for k in idx],
+                              np.int64)
+            d = 0.5 * (seg_a[others] + seg_b[others]) - tip
+            others = others[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= reach * reach]
             near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
                        _distance_to_polyline(tip, own) if len(own) else np.inf)
             if near < clearance * ln:

@@ -677,3 +677,15 @@ def test_gaps_that_are_not_a_broken_stroke_stay(case):
         left, other = _piece(1, np.array(ring), [1, 1], [0, 1]), []
     out = close_gaps([left, *other], 6.0, 2.0, 30.0, 5.0)
     assert len(out) == 1 + len(other)
+
+
+def test_a_lambda_rerun_imports_no_scipy_spatial():
+    # flow → select → export is what a λ sweep re-runs; scipy.spatial's import (k-d trees) was about
+    # a twentieth of that re-run, so the export finds near points with its own grid.
+    import subprocess
+    import sys
+
+    code = ("import sys, pipeline.cli, stages.flow.stage, stages.select.stage, stages.export.stage; "
+            "print(sorted(m for m in sys.modules if m.startswith('scipy.spatial')))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
