@@ -121,6 +121,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         "class_f1_pooled": {str(t): pooled.class_f1(t) for t in TYPES},
         "seconds_per_case": t_total / n,
         "threshold": kp_cfg["threshold"], "min_distance": kp_cfg["min_distance"], "typing": kp_cfg["typing"],
+        "test_time_views": list(kp_cfg["test_time_views"]),
     }
     return {"summary": summary, "cases": cases}
 
@@ -150,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--typing", choices=("valence", "argmax"), default=None,
                     help="keypoint typing (default: conf/keypoints/default.yaml)")
     ap.add_argument("--type-classifier", default=None, help="type classifier .npz (default: the packaged one)")
+    ap.add_argument("--views", nargs="*", default=None, metavar="VIEW",
+                    help="test-time views averaged in (keypoints.test_time_views: flip_x flip_y rot180 transpose)")
     ap.add_argument("--precision", choices=("fp32", "bf16", "auto"), default=None,
                     help="network arithmetic (keypoints.precision)")
     ap.add_argument("--radius", type=float, default=5.0, help="one-to-one matching radius, px")
@@ -160,11 +163,18 @@ def main(argv: list[str] | None = None) -> int:
     if not args.folder.exists():
         print(f"error: {args.folder} does not exist", file=sys.stderr)
         return 2
-    res = evaluate_folder(args.folder, {"weights": args.weights, "detection_ensemble": args.ensemble,
-                                        "threshold": args.threshold,
-                                        "min_distance": args.min_distance, "typing": args.typing,
-                                        "type_classifier": args.type_classifier, "precision": args.precision},
-                          args.radius, args.limit, args.render)
+    from stages.errors import InputError
+
+    try:
+        res = evaluate_folder(args.folder, {"weights": args.weights, "detection_ensemble": args.ensemble,
+                                            "threshold": args.threshold,
+                                            "min_distance": args.min_distance, "typing": args.typing,
+                                            "type_classifier": args.type_classifier, "precision": args.precision,
+                                            "test_time_views": args.views},
+                              args.radius, args.limit, args.render)
+    except InputError as exc:        # a bad setting (threshold, view, weights): one line, as polyvec says it
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     s = res["summary"]
     if s["cases"] == 0:
         print(f"error: no PNG with a .json or .pts ground truth in {args.folder}", file=sys.stderr)

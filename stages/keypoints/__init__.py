@@ -39,6 +39,7 @@ class KeypointsConfig:
 
     weights: str
     detection_ensemble: list[str]
+    test_time_views: list[str]
     typing: str
     type_classifier: str | None
     threshold: float
@@ -58,6 +59,11 @@ class KeypointsConfig:
     def __post_init__(self) -> None:
         if self.typing not in ("valence", "argmax"):
             raise InputError(f"typing must be 'valence' or 'argmax', got {self.typing!r}")
+        views = ("flip_x", "flip_y", "rot180", "transpose")   # stages.keypoints.inference.VIEWS (torch-free here)
+        bad = [v for v in self.test_time_views if v not in views]
+        if bad or len(set(self.test_time_views)) != len(self.test_time_views):
+            raise InputError(f"keypoints.test_time_views must be distinct names among {list(views)}, "
+                             f"got {list(self.test_time_views)}")
         if self.precision not in ("fp32", "bf16", "auto"):
             raise InputError(f"keypoints.precision must be 'fp32', 'bf16' or 'auto', got {self.precision!r}")
         for key in ("threshold", "junction_threshold"):

@@ -21,6 +21,9 @@ Choices made on purpose
   are meaningless off it — they are zeroed there before NMS (and in the artifact). Positions are refined to sub-pixel by a parabola through the 3×3 neighbourhood
   and reported at pixel centres, (j + 0.5, i + 0.5) + offset.
 * **Type** = argmax of H2..H4 at the peak pixel (endpoint 1, junction 3, corner 5).
+* **Test-time views** (``test_time_views``, not in the paper or the authors' code): the heatmaps may
+  be averaged over the drawing and some of its mirror images (each run through the network and
+  mapped back); the network is not exactly equivariant to them, so the mean is a cheap ensemble.
 """
 
 from __future__ import annotations
@@ -67,6 +70,42 @@ def _tile_starts(n: int, tile: int, step: int) -> list[int]:
     starts = list(range(0, n - tile, step))
     starts.append(n - tile)
     return starts
+
+
+#: Test-time views: each an involution of the last two axes, so it also maps the view's output back.
+VIEWS = {
+    "flip_x": lambda a: a[..., ::-1],
+    "flip_y": lambda a: a[..., ::-1, :],
+    "rot180": lambda a: a[..., ::-1, ::-1],
+    "transpose": lambda a: np.swapaxes(a, -1, -2),
+}
+
+
+def predict_views(model: torch.nn.Module, x: np.ndarray, views: list[str], tile_size: int, tile_overlap: int,
+                  needed: np.ndarray | None = None, single_pass_max: int | None = None,
+                  bf16: bool = False) -> np.ndarray:
+    """Heatmaps H1..H4 averaged over the drawing and its ``views`` (test-time augmentation).
+
+    Parameters
+    ----------
+    model, x, tile_size, tile_overlap, needed, single_pass_max, bf16
+        As :func:`predict_heatmaps`.
+    views : list of str
+        Names in :data:`VIEWS`; each costs one more pass of the network. [] = the drawing alone.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (4, H, W): the mean of every view's heatmaps, each mapped back onto the drawing.
+    """
+    out = predict_heatmaps(model, x, tile_size, tile_overlap, needed=needed, single_pass_max=single_pass_max,
+                           bf16=bf16)
+    for v in views:
+        view = VIEWS[v]
+        out += view(predict_heatmaps(model, np.ascontiguousarray(view(x)), tile_size, tile_overlap,
+                                     needed=None if needed is None else np.ascontiguousarray(view(needed)),
+                                     single_pass_max=single_pass_max, bf16=bf16))
+    return np.ascontiguousarray(out / (1 + len(views)), dtype=np.float32)
 
 
 def predict_heatmaps(model: torch.nn.Module, x: np.ndarray, tile_size: int, tile_overlap: int,

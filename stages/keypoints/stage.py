@@ -21,6 +21,11 @@ and each listed network costs a pass of its trunk. Phases 7–15 shipped with it
 fine-tuned networks fired false corners alone. Why off now: phase 16 (trained on busy drawings) alone
 ties the pair at the keypoint level and beats it end to end over both validation splits, in one pass
 (numbers: MODEL_CARD.md, phase 16). ``detection_ensemble: []`` runs the main network alone.
+
+Test-time views (``test_time_views``, an option, off by default): the main network's four maps are
+averaged over the drawing and mirror images of it (:func:`~stages.keypoints.inference.predict_views`).
+Why off: on both validation splits the transpose lifts the keypoint-level F1 but not the curves'
+junction F1, for a second network pass (MODEL_CARD.md, "Test-time views").
 """
 
 from __future__ import annotations
@@ -145,7 +150,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     """
     import torch
 
-    from stages.keypoints.inference import dilate_band, network_input, predict_heatmaps, use_bf16
+    from stages.keypoints.inference import dilate_band, network_input, predict_heatmaps, predict_views, use_bf16
 
     c = from_section(KeypointsConfig, cfg, "keypoints")
     torch.set_num_threads(c.torch_threads)
@@ -159,7 +164,8 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     # Tiles with no pixel of the dilated band are not run: keypoints_from_heatmaps zeroes them anyway.
     needed = dilate_band(mask, c.band_dilation) if (c.restrict_to_band and mask is not None) else None
     bf16 = use_bf16(c.precision)
-    heatmaps = predict_heatmaps(model, x, *tiles, needed=needed, single_pass_max=c.single_pass_max, bf16=bf16)
+    heatmaps = predict_views(model, x, list(c.test_time_views), *tiles, needed=needed,
+                             single_pass_max=c.single_pass_max, bf16=bf16)
     ensemble = list(c.detection_ensemble)
     if ensemble:
         # Detection ensemble: H1 is the mean over the networks; the class maps (H2..H4), which the

@@ -226,6 +226,7 @@ def test_plain_paths_with_odd_characters(tmp_path, cli):
     (("does/not/exist.png",), "input not found: does/not/exist.png"),
     (("export.join.max_turn_deg=200",), "join.max_turn_deg"),          # composes, but out of its range
     (("export.gaps.max_turn_deg=120",), "gaps.max_turn_deg"),
+    (("keypoints.test_time_views=[mirror]",), "keypoints.test_time_views"),
 ])
 def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
     proc = cli(*args, cwd=tmp_path)
@@ -233,6 +234,16 @@ def test_usage_errors_exit_2_with_one_line(tmp_path, cli, args, message):
     assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr, proc.stderr
     assert proc.stderr.startswith("polyvec: error: ")
     assert not (tmp_path / "artifacts").exists()
+
+
+def test_test_time_views_from_the_command_line(tmp_path, cli):
+    """``keypoints.test_time_views=[transpose]`` runs the keypoints with the transposed drawing's
+    heatmaps averaged in; the stored artifact records the setting."""
+    proc = cli("keypoints.test_time_views=[transpose]", "runtime.until=keypoints", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    manifests = list((tmp_path / "artifacts" / "keypoints").glob("*/*/manifest.json"))
+    assert len(manifests) == 1
+    assert json.loads(manifests[0].read_text())["config"]["test_time_views"] == ["transpose"]
 
 
 @pytest.mark.slow

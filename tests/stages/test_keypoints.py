@@ -18,7 +18,8 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
 from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
-from stages.keypoints.inference import _tile_starts, dilate_band, find_keypoints, network_input, predict_heatmaps
+from stages.keypoints.inference import (VIEWS, _tile_starts, dilate_band, find_keypoints, network_input, predict_heatmaps,
+                                        predict_views)
 from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms
 from stages.keypoints.training.generator import drawing_from_strokes, generate, render_strokes
 from stages.keypoints.training.human_strokes import read_quickdraw_ndjson, read_svg_strokes
@@ -281,6 +282,50 @@ def test_detection_ensemble_averages_h1_and_keeps_class_maps():
         run(dict(cfg, detection_ensemble=["/nonexistent/net.pt"]), prep=prep)
 
 
+class _PositionNet(torch.nn.Module):
+    """Not equivariant at all: its four maps are the input and fixed ramps across the image."""
+
+    multiple = 8
+
+    def forward(self, a):
+        h, w = a.shape[-2:]
+        yy = torch.arange(h, dtype=a.dtype)[:, None].expand(h, w)
+        xx = torch.arange(w, dtype=a.dtype)[None, :].expand(h, w)
+        return (torch.stack([a[0, 0], xx, yy, xx * yy])[None],)
+
+
+@pytest.mark.parametrize("view", sorted(VIEWS))
+def test_each_test_time_view_is_mapped_back_onto_the_drawing(view):
+    """A view's output comes back in the drawing's frame: the input channel is the drawing itself; the
+    ramps (which a view turns) average with their mapped-back mirror images. Non-square, with tiles."""
+    x = np.random.default_rng(0).random((37, 53)).astype(np.float32)
+    for tile, single in ((512, 1024), (24, 24)):            # one pass, and overlapping tiles
+        plain = predict_heatmaps(_PositionNet(), x, tile, 8, single_pass_max=single)
+        both = predict_views(_PositionNet(), x, [view], tile, 8, single_pass_max=single)
+        np.testing.assert_allclose(both[0], x, atol=1e-5)                          # the drawing, mapped back
+        mirrored = VIEWS[view](predict_heatmaps(_PositionNet(), np.ascontiguousarray(VIEWS[view](x)), tile, 8,
+                                                single_pass_max=single))
+        np.testing.assert_allclose(both, (plain + mirrored) / 2, atol=1e-4)
+        assert not np.allclose(both[1:], plain[1:])                               # the ramps did turn
+    np.testing.assert_array_equal(predict_views(_PositionNet(), x, [], 512, 8), predict_heatmaps(_PositionNet(), x, 512, 8))
+
+
+def test_test_time_views_in_the_stage_and_bad_names():
+    """``test_time_views: [transpose]`` averages the drawing's and its transpose's heatmaps (the default,
+    ``[]``, one pass); unknown or repeated names are one clear error."""
+    d = synthetic.cross(size=64)
+    prep = Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={})
+    cfg = _cfg()
+    assert cfg["test_time_views"] == []
+    main = run(cfg, prep=prep)
+    both = run(dict(cfg, test_time_views=["transpose"]), prep=prep)
+    assert not np.allclose(both["heatmaps"], main["heatmaps"], atol=1e-4)
+    assert len(both["points"]) == len(main["points"])          # the cross's four ends and its junction
+    for bad in (["mirror"], ["flip_x", "flip_x"]):
+        with pytest.raises(InputError, match="test_time_views"):
+            run(dict(cfg, test_time_views=bad), prep=prep)
+
+
 def test_weights_load_on_cpu():
     model, name = load_model("packaged")
     assert next(model.parameters()).device.type == "cpu"
@@ -519,6 +564,11 @@ def test_eval_keypoints_cli_scores_a_folder(tmp_path):
         s = json.loads(out.read_text())["summary"]
         assert s["cases"] == 1 and 0.0 <= s["f1_matched_pooled"] <= 1.0
         assert ("keypoints_procedural.pt@" in s["weights"]) == procedural
+        assert s["test_time_views"] == []
+    out = tmp_path / "views.json"
+    assert main([str(tmp_path), "--json", str(out), "--views", "transpose"]) == 0
+    assert json.loads(out.read_text())["summary"]["test_time_views"] == ["transpose"]
+    assert main([str(tmp_path), "--views", "mirror"]) == 2                   # one line, no traceback
     assert main([str(tmp_path / "missing")]) == 2
 
 
