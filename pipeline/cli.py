@@ -21,7 +21,8 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
-from pipeline.runner import BatchResult, ClusterError, TaskResult, run_batch, validated_stages, write_outputs
+from pipeline.runner import (BatchResult, ClusterError, TaskResult, quiet_full_collections, run_batch, validated_stages,
+                             write_outputs)
 from pipeline.store import ArtifactStore
 from stages.errors import InputError
 
@@ -591,6 +592,7 @@ def exit_now(code: object) -> None:
 
 def main() -> None:
     """Console entry point; exits 1 when any image failed, 2 on a usage error, 130 on Ctrl-C."""
+    quiet_full_collections()   # before the stages' imports and tasks, which run in this process
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         print(HELP)
         sys.exit(0)

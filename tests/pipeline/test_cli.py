@@ -546,3 +546,30 @@ def test_the_command_ends_without_the_interpreters_teardown(tmp_path, args, code
     assert "atexit ran" in proc.stdout and "finalised" not in proc.stdout
     if code == 0:
         assert (tmp_path / "out" / "vee.svg").read_text().startswith("<")
+
+
+_GC_AT_EXIT = """
+import atexit, gc, json, sys
+atexit.register(lambda: open("gc.json", "w").write(json.dumps({"threshold": gc.get_threshold(),
+                                                                "full": gc.get_stats()[2]["collections"]})))
+sys.argv = ["polyvec", *sys.argv[1:]]
+from pipeline.cli import main
+main()
+"""
+
+
+def test_a_run_makes_few_full_garbage_collections(tmp_path):
+    """A full collection scans every live object (~0.1 s once numba and the stages are imported) and
+    finds almost nothing: the run in this process makes them rare (issue 14; DECISIONS, engine)."""
+    import subprocess
+    import sys
+
+    from pipeline.runner import FULL_COLLECTION_EVERY
+
+    proc = subprocess.run([sys.executable, "-c", _GC_AT_EXIT, "runtime.cluster=sync"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "out" / "polyvec-example.svg").exists()
+    gc_at_exit = json.loads((tmp_path / "gc.json").read_text())
+    assert gc_at_exit["threshold"][2] == FULL_COLLECTION_EVERY
+    assert gc_at_exit["full"] <= 1, gc_at_exit        # CPython's default thresholds: 4-6 full collections
