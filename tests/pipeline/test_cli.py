@@ -10,10 +10,14 @@ from stages import synthetic
 
 
 def test_default_run_on_the_bundled_example(tmp_path, cli):
-    """`polyvec` with no input vectorises the generated example drawing; a rerun is all cache hits."""
+    """`polyvec` with no input vectorises the generated example drawing; a rerun is all cache hits. The
+    curves JSON beside the SVG has one curve per line."""
     proc = cli(cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "out" / "polyvec-example.png").exists()
+    text = (tmp_path / "out" / "polyvec-example.json").read_text()
+    curves = json.loads(text)["curves"]
+    assert curves and [json.loads(line.strip().rstrip(",")) for line in text.splitlines()[2:2 + len(curves)]] == curves
     assert (tmp_path / "artifacts" / "prep").is_dir()
     assert "computed" in proc.stderr
     assert not list(tmp_path.glob("*.log")), "the run left a Hydra log file in the working directory"
