@@ -635,7 +635,6 @@ class _ChildTasks:
 def _serve_tasks(conn, stages: tuple[str, ...]) -> None:
     """The child of :class:`_ChildTasks`: import the stages, then run tasks until told to stop."""
     os.environ.update(THREAD_ENV)
-    quiet_full_collections()      # before torch's import, which made two of the child's full collections
     for name in stages:
         BY_NAME[name].load()
     try:

@@ -85,6 +85,15 @@ class _PointGrid:
         return out
 
 
+def _within(points: np.ndarray, q: np.ndarray, r: float) -> np.ndarray:
+    """bool (n,): which of ``points`` ((n, 2)) lie within ``r`` of ``q`` (squared distances, as k-d trees test).
+
+    :meth:`_PointGrid.near` gives a superset by cells; this is the exact test its callers apply.
+    """
+    d = np.asarray(points, np.float64).reshape(-1, 2) - q
+    return d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r * r
+
+
 class _EndIndex:
     """The ends of a set of curves by keypoint and, for synthetic ends (type 0), by position."""
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.export.corners import join_linked
-from stages.export.end_index import _PointGrid
+from stages.export.end_index import _PointGrid, _within
 from stages.export.joins import end_direction
 
 #: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of
@@ -62,7 +62,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
             q = p[0 if e == 0 else -1]
             if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
                 continue                                   # a closed loop's end meets its own start
-            if any(o != n and _any_within(pts[o][idx], q, near) for o, idx in grid.near(q, near).items()):
+            if any(o != n and _within(pts[o][idx], q, near).any() for o, idx in grid.near(q, near).items()):
                 continue                                   # at a junction, or beside another curve
             ends.append((n, e))
             where.append(q)
@@ -76,8 +76,9 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     end_grid = _PointGrid(reach)
     for a, q in enumerate(where):
         end_grid.add(a, q[None])
-    for a, b in ((a, b) for a in range(len(ends)) for b in end_grid.near(where[a], reach)
-                 if b > a and _any_within(where[b][None], where[a], reach)):
+    near_pairs = [(a, b) for a in range(len(ends)) for b in end_grid.near(where[a], reach)
+                  if b > a and _within(where[b], where[a], reach)[0]]
+    for a, b in near_pairs:
         i, j = ends[a][0], ends[b][0]
         if i == j:
             continue
@@ -94,8 +95,3 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
             link[ends[a]], link[ends[b]] = ends[b], ends[a]
     return join_linked(curves, link, corner_joints=False) if link else curves
 
-
-def _any_within(points: np.ndarray, q: np.ndarray, r: float) -> bool:
-    """Whether any of ``points`` ((n, 2)) lies within ``r`` of ``q`` (squared distances, as k-d trees test)."""
-    d = np.asarray(points, np.float64) - q
-    return bool(np.any(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r * r))

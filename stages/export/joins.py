@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.export.end_index import _SAME_POINT_PX, _EndIndex, _end_state, _first_in_order, _PointGrid
+from stages.export.end_index import _SAME_POINT_PX, _EndIndex, _end_state, _first_in_order, _PointGrid, _within
 from stages.geometry import arc_length, point_at_arc, polyline_length, turn_deg, unit
 
 JOINABLE_TYPES = (0, 3)      # synthetic ends and junctions; never endpoints (1) or sharp corners (5)
@@ -550,8 +550,7 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             reach = clearance * ln + half
             others = np.array([first[o] + k for o, idx in mids.near(tip, reach).items() if o != i for k in idx],
                               np.int64)
-            d = 0.5 * (seg_a[others] + seg_b[others]) - tip
-            others = others[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= reach * reach]
+            others = others[_within(0.5 * (seg_a[others] + seg_b[others]), tip, reach)]
             near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
                        _distance_to_polyline(tip, own) if len(own) else np.inf)
             if near < clearance * ln:

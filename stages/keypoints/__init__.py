@@ -23,6 +23,16 @@ PACKAGED_TYPE_CLASSIFIER = WEIGHTS_DIR / "type_classifier.npz"
 PACKAGED_PROCEDURAL = WEIGHTS_DIR / "keypoints_procedural.pt"
 
 
+#: Test-time views (``test_time_views``): each an involution of the last two axes, so it also maps the
+#: view's output back onto the drawing (:func:`stages.keypoints.inference.predict_views`).
+VIEWS = {
+    "flip_x": lambda a: a[..., ::-1],
+    "flip_y": lambda a: a[..., ::-1, :],
+    "rot180": lambda a: a[..., ::-1, ::-1],
+    "transpose": lambda a: a.swapaxes(-1, -2),
+}
+
+
 def _file_hash(path: Path) -> str:
     if not path.is_file():
         return "missing"  # load_model refuses to run without it
@@ -59,10 +69,9 @@ class KeypointsConfig:
     def __post_init__(self) -> None:
         if self.typing not in ("valence", "argmax"):
             raise InputError(f"typing must be 'valence' or 'argmax', got {self.typing!r}")
-        views = ("flip_x", "flip_y", "rot180", "transpose")   # stages.keypoints.inference.VIEWS (torch-free here)
-        bad = [v for v in self.test_time_views if v not in views]
+        bad = [v for v in self.test_time_views if v not in VIEWS]
         if bad or len(set(self.test_time_views)) != len(self.test_time_views):
-            raise InputError(f"keypoints.test_time_views must be distinct names among {list(views)}, "
+            raise InputError(f"keypoints.test_time_views must be distinct names among {list(VIEWS)}, "
                              f"got {list(self.test_time_views)}")
         if self.precision not in ("fp32", "bf16", "auto"):
             raise InputError(f"keypoints.precision must be 'fp32', 'bf16' or 'auto', got {self.precision!r}")

@@ -33,6 +33,7 @@ import torch
 from scipy import ndimage
 from skimage.feature import peak_local_max
 
+from stages.keypoints import VIEWS
 from stages.keypoints.codes import TYPE_CODES
 
 
@@ -72,15 +73,6 @@ def _tile_starts(n: int, tile: int, step: int) -> list[int]:
     return starts
 
 
-#: Test-time views: each an involution of the last two axes, so it also maps the view's output back.
-VIEWS = {
-    "flip_x": lambda a: a[..., ::-1],
-    "flip_y": lambda a: a[..., ::-1, :],
-    "rot180": lambda a: a[..., ::-1, ::-1],
-    "transpose": lambda a: np.swapaxes(a, -1, -2),
-}
-
-
 def predict_views(model: torch.nn.Module, x: np.ndarray, views: list[str], tile_size: int, tile_overlap: int,
                   needed: np.ndarray | None = None, single_pass_max: int | None = None,
                   bf16: bool = False) -> np.ndarray:
@@ -91,7 +83,7 @@ def predict_views(model: torch.nn.Module, x: np.ndarray, views: list[str], tile_
     model, x, tile_size, tile_overlap, needed, single_pass_max, bf16
         As :func:`predict_heatmaps`.
     views : list of str
-        Names in :data:`VIEWS`; each costs one more pass of the network. [] = the drawing alone.
+        Names in :data:`stages.keypoints.VIEWS`; each costs one more pass of the network. [] = the drawing alone.
 
     Returns
     -------
@@ -100,6 +92,8 @@ def predict_views(model: torch.nn.Module, x: np.ndarray, views: list[str], tile_
     """
     out = predict_heatmaps(model, x, tile_size, tile_overlap, needed=needed, single_pass_max=single_pass_max,
                            bf16=bf16)
+    if not views:
+        return out                  # the default: no copy of the (4, H, W) maps
     for v in views:
         view = VIEWS[v]
         out += view(predict_heatmaps(model, np.ascontiguousarray(view(x)), tile_size, tile_overlap,

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     from stages import prep as prep_stage
     from stages.evaluate.keypoints import TYPES, MatchResult, match_keypoints
     from stages.keypoints import keypoints_from_heatmaps, load_model
-    from stages.keypoints.inference import VIEWS, network_input, predict_heatmaps
+    from stages.keypoints import VIEWS
+    from stages.keypoints.inference import network_input, predict_heatmaps
     from stages.prep import internal_scale
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -17,8 +17,8 @@ from stages import synthetic
 from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.evaluate.keypoints import f1_authors, match_keypoints, read_pts
-from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, load_model, render_keypoints, run
-from stages.keypoints.inference import (VIEWS, _tile_starts, dilate_band, find_keypoints, network_input, predict_heatmaps,
+from stages.keypoints import PACKAGED_WEIGHTS, STAGE_VERSION, VIEWS, load_model, render_keypoints, run
+from stages.keypoints.inference import (_tile_starts, dilate_band, find_keypoints, network_input, predict_heatmaps,
                                         predict_views)
 from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms
 from stages.keypoints.training.generator import drawing_from_strokes, generate, render_strokes
