@@ -68,6 +68,46 @@ def test_local_dask_cluster(tmp_path, images, compose_cfg):
     assert _statuses(batch)["field"] == ["computed", "computed"]
 
 
+def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, images, compose_cfg):
+    """Once the batch is done, a local worker holding the stages' modules exits at once (os._exit after
+    the exit handlers): an object that only the interpreter's teardown would collect is never collected."""
+    from pipeline.runner import get_client
+
+    marker_dir = tmp_path / "torn_down"
+    marker_dir.mkdir()
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field", "runtime.workers=1")
+
+    def plant(folder=str(marker_dir)):
+        import os as _os
+        import sys as _sys
+        import types
+
+        class Probe:
+            def __del__(self, _os=_os, folder=folder):
+                _os.close(_os.open(_os.path.join(folder, str(_os.getpid())), _os.O_CREAT | _os.O_WRONLY))
+
+        module = types.ModuleType("polyvec_teardown_probe")
+        module.probe = Probe()  # collected only when the interpreter clears its modules
+        _sys.modules[module.__name__] = module
+
+    try:
+        batch = run_batch(images, cfg)
+        client = get_client(cfg.runtime)
+        pids = client.run(os.getpid)
+        client.run(plant)
+    finally:
+        close_client()
+    assert not batch.failed_images
+    for pid in pids.values():  # gone, without a teardown
+        for _ in range(100):
+            try:
+                os.kill(pid, 0)
+            except OSError:
+                break
+            __import__("time").sleep(0.05)
+    assert list(marker_dir.iterdir()) == []
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
