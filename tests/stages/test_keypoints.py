@@ -68,6 +68,17 @@ def test_near_parallel_crossing_is_not_a_junction():
     assert (types == 3).sum() == 0
 
 
+def test_crossing_angle_of_the_labels_is_a_rule_of_its_own():
+    """A 28° crossing: no junction by the reference's 37° (validation cases, realvec_dev), a junction by
+    the acceptance scorer's 20°, which the shipped network was trained with (MODEL_CARD, phase 19g)."""
+    d = synthetic.cross(angle1=10, angle2=38, length=60)
+    _, reference = label_keypoints(d.strokes, [d.width] * 2, RULES)
+    pts, scorer = label_keypoints(d.strokes, [d.width] * 2, replace(RULES, crossing_min_deg=20.0))
+    assert RULES.crossing_min_deg == 37.0
+    assert (reference == 3).sum() == 0
+    assert (scorer == 3).sum() == 1 and np.allclose(pts[scorer == 3][0], [32, 32], atol=1.0)
+
+
 def test_vee_has_one_corner():
     d = synthetic.vee()
     pts, types = _labels(d)

@@ -25,6 +25,9 @@ Choices made on purpose
   cases. Configurable as ``corner_turn_deg``.
 * Widths vary along a stroke (pressure); r uses the stroke's mean width, and a pair of strokes uses
   the larger of their two radii.
+* **Crossing angle 37° here, 20° for the shipped network**: §4.2 and the realvec_dev labels call
+  crossings junctions above ≈ 37°, the acceptance scorer above 20°; phase 19g was trained with
+  ``crossing_min_deg: 20`` because the scorer's shallow crossings were missed end to end (MODEL_CARD).
 
 Points are (x, y), pixel units, origin at the top-left corner of the image.
 """
