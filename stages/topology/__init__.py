@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "4"
+STAGE_VERSION = "5"  # 5: a subgraph chain no kept candidate covers is offered as a candidate
 
 __all__ = ["STAGE_VERSION", "run", "render_topology", "TopologyConfig", "candidate_paths"]
 

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from stages.geometry import arc_length, point_at_arc, turn_deg
 from stages.topology import TopologyConfig
-from stages.topology.allowed_paths import enumerate_allowed_paths
+from stages.topology.allowed_paths import _chains, enumerate_allowed_paths
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.key_vertices import find_key_vertices, snap_position
@@ -48,7 +48,7 @@ class _Extractor:
         self.terminals: dict[int, dict[int, tuple[int, int]]] = {}
         self.stats = {"loop_a_paths": 0, "loop_a_rejected": 0, "loop_b_paths": 0, "loop_b_rejected": 0,
                       "lone_component_terminals": 0, "promoted_terminals": 0, "enumeration_budget_hit": 0,
-                      "pass_through_rejected": 0}
+                      "pass_through_rejected": 0, "uncovered_chains_offered": 0}
 
     # -- helpers ------------------------------------------------------------------------------
     def edge_ids(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -339,6 +339,47 @@ def straight_pass_through(raw: list[dict], ex: "_Extractor", conf: TopologyConfi
     return keep
 
 
+def offer_uncovered_chains(raw: list[dict], ex: "_Extractor") -> list[dict]:
+    """Offer each chain of the covering subgraph that no kept candidate runs over as a candidate itself.
+
+    The enumeration counts a chain as used by any allowed path over it, and :func:`straight_pass_through`
+    rejects paths only afterwards. Where every path over a chain turned through a junction keypoint — a
+    stroke's loop between a junction and a key vertex that shorter routes join too, so the direct path
+    was beyond the per-pair cap — the chain's ink had no candidate and no selection could cover it
+    (``val_qd_broccoli_1_clean``: a 223-px loop lost). The chain between its two nodes is offered as it
+    is; a node that is not a key vertex becomes a synthetic one (as the enumeration promotes them).
+    """
+    g = ex.g
+    covered = np.zeros(len(g.edges), bool)
+    for p in raw:
+        vs = np.asarray(p["vertices"], np.int64)
+        if len(vs) > 1:
+            covered[ex.edge_ids(vs[:-1], vs[1:])] = True
+    orphan = ex.sub_edge & ~covered
+    if not orphan.any():
+        return raw
+    out = list(raw)
+    for c in np.unique(ex.comp_of[g.edges[orphan, 0]]).tolist():
+        v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
+        a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+        sub_arc = np.zeros(len(g.indices), bool)
+        sub_arc[a0:a1] = ex.sub_edge[g.arc_edge[a0:a1]]
+        sub_deg = np.bincount(ex.tails[a0:a1][sub_arc[a0:a1]] - v0, minlength=v1 - v0)
+        term = ex.terminals.setdefault(c, {})
+        nodes = {int(v) + v0 for v in np.nonzero((sub_deg > 0) & (sub_deg != 2))[0]} | \
+            {v for v in term if sub_deg[v - v0] > 0}
+        chains, _ = _chains(g, sub_arc, nodes, ex.arc_len)
+        for ch in chains[::2]:                                   # one direction of each
+            if not orphan[g.arc_edge[np.asarray(ch.arcs)]].any():
+                continue
+            for v in (ch.start, ch.end):
+                if v not in term:
+                    ex.add_terminal(c, v)
+            out.append({"vertices": list(ch.vertices), "arcs": list(ch.arcs), "through": [], "component": c})
+            ex.stats["uncovered_chains_offered"] += 1
+    return out
+
+
 def candidate_paths(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, vertex_xy, vertex_width,
                      vertex_root, edges, points: np.ndarray, types: np.ndarray, vertex_flags=None) -> dict:
     """Candidate paths of one drawing.
@@ -374,6 +415,7 @@ def candidate_paths(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, v
     for c in range(n_comp):
         raw += ex.component(c)
     raw = straight_pass_through(raw, ex, conf)
+    raw = offer_uncovered_chains(raw, ex)
     timings["components_s"] = time.perf_counter() - t1
     dist = ex.interest_distance()
 

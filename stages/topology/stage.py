@@ -76,6 +76,8 @@ Choices made on purpose (vs. the paper and the authors' code; measurements in st
   their non-key ends promoted to synthetic key vertices, and a chain that only paths past the
   per-pair cap (``max_paths_per_pair``) use keeps the shortest of them, so the candidates always cover
   the subgraph (without it a spiral's outer ring between two key vertices lost every candidate).
+  A chain whose every path the pass-through test then rejects (they turned through a junction) is
+  offered on its own between its nodes (``offer_uncovered_chains``; a teardrop's long side was lost).
 * A vertex claimed by two keypoints keeps the nearer keypoint.
 * **Corner and junction keypoints at the ink's edge** (``keypoint_min_depth``, not in the paper:
   the authors move every key vertex exactly onto its keypoint).  Where two strokes share one band,

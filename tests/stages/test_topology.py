@@ -454,3 +454,28 @@ def test_coverage_by_pixel_boxes_equals_the_kd_tree_query():
         assert np.array_equal(f2, flat) and np.array_equal(o2, off)
     empty, offsets = band_capsule_members(np.zeros((5, 5), bool), a, b, ra, rb)
     assert len(empty) == 0 and len(offsets) == 301 and not offsets.any()
+
+
+def _bow(p0, p1, bulge, n: int = 24) -> np.ndarray:
+    """A quadratic arc from p0 to p1 whose middle is pushed by ``bulge``."""
+    t = np.linspace(0, 1, n)[:, None]
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    mid = (p0 + p1) / 2 + np.asarray(bulge, float)
+    return (1 - t) ** 2 * p0 + 2 * t * (1 - t) * mid + t ** 2 * p1
+
+
+def test_a_chain_whose_only_paths_turn_through_a_junction_is_still_offered():
+    """A teardrop: junction 0 at its sharp bottom, corner 1 at its top, a short and a long side.
+
+    With one path per pair the long side is reached only by the loop 1 → short → 0 → long → 1, which
+    turns sharply through junction 0 and is rejected by the pass-through test; the long side must still
+    be a candidate (val_qd_broccoli_1_clean lost a 223-px loop this way)."""
+    j, b = (40.0, 70.0), (40.0, 14.0)
+    strokes = [_bow(j, b, (-20, 0)), _bow(j, b, (44, 0))]
+    kps = [(*j, 3), (*b, 5)]
+    d = Drawing(render((96, 96), strokes, 3.0), strokes, 3.0, kps)
+    art, inputs = _run(d, keypoints=kps, max_paths_per_pair=1)
+    assert art.data["counts"]["pass_through_rejected"] >= 1
+    assert _uncovered(art, inputs) == 0
+    assert sorted(round(p["length"]) > 70 for p in art.data["paths"]) == [False, True]   # both sides
+    assert art.data["counts"]["uncovered_chains_offered"] == 1
