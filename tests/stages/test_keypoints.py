@@ -79,6 +79,20 @@ def test_crossing_angle_of_the_labels_is_a_rule_of_its_own():
     assert (scorer == 3).sum() == 1 and np.allclose(pts[scorer == 3][0], [32, 32], atol=1.0)
 
 
+def test_an_end_on_its_own_stroke_is_a_junction_only_by_the_reference_rule():
+    """A hook whose end curls back onto its own stroke: a T by §4.2 (``own_stroke_tee``), a free end
+    for the acceptance scorer (an end beside its own curve has valence 1)."""
+    t = np.linspace(0, 1, 60)
+    ang = np.linspace(0, 1.5 * np.pi, 60)
+    hook = np.vstack([np.c_[10 + 60 * t, np.full_like(t, 40.0)], np.c_[70 + 12 * np.sin(ang), 28 + 12 * np.cos(ang)],
+                      [[58.0, 40.0]]])
+    assert RULES.own_stroke_tee
+    _, ref = label_keypoints([hook], [3.0], RULES)
+    pts, off = label_keypoints([hook], [3.0], replace(RULES, own_stroke_tee=False))
+    assert sorted(ref.tolist()) == [1, 3] and sorted(off.tolist()) == [1, 1]
+    assert np.allclose(sorted(pts[:, 0]), [10.0, 58.0], atol=0.5)
+
+
 def test_vee_has_one_corner():
     d = synthetic.vee()
     pts, types = _labels(d)

@@ -51,6 +51,7 @@ class LabelRules:
     corner_turn_deg: float
     crossing_min_deg: float
     step: float
+    own_stroke_tee: bool
 
 
 @dataclass

@@ -9,7 +9,7 @@ labelling it is scored against. With r = max(2, w):
 
 * a stroke whose ends are within r and whose length exceeds 6r is closed and has no ends;
 * an end within r of another stroke's interior (more than 2r of arc from that stroke's ends), or of
-  its own stroke farther than 4r of arc away, is a junction (T);
+  its own stroke farther than 4r of arc away (``own_stroke_tee``), is a junction (T);
 * ends within r of each other meet: three or more → junction, two → sharp corner when the strokes turn
   by more than ``corner_turn_deg`` there (else a smooth continuation, no keypoint), one → endpoint;
 * crossings (also self-crossings) at more than ``crossing_min_deg`` → junction;
@@ -159,7 +159,7 @@ def label_keypoints(strokes: list[np.ndarray], widths: list[float] | np.ndarray,
                     np.array([closed[j] for j in o], dtype=bool)
                     | ((a > 2 * rr) & (a < length[o] - 2 * rr)))
                 s_end = 0.0 if which == 0 else length[k]
-                own = (o == k) & (d < radius[k]) & (np.abs(a - s_end) > 4 * radius[k])
+                own = (o == k) & (d < radius[k]) & (np.abs(a - s_end) > 4 * radius[k]) & rules.own_stroke_tee
                 is_t = bool(other.any() or own.any())
             if is_t:
                 junctions.append(p)
