@@ -61,6 +61,28 @@ def _turn_allowed(g, turn_ptr, turn_ok, a_in: int, a_out: int) -> bool:
     return bool(turn_ok[turn_ptr[a_in] + (a_out - g.indptr[v])])
 
 
+def subgraph_chains(g, sub_arc: np.ndarray, in_sub: np.ndarray, sub_deg: np.ndarray, v0: int, terminals,
+                    turn_ptr, turn_ok, arc_len: np.ndarray) -> tuple[set, list[Chain], dict]:
+    """The nodes of one component's covering subgraph and the chains between them.
+
+    Nodes are key vertices (``terminals``), vertices of subgraph valence ≠ 2, and valence-2 vertices of a
+    valence ≥ 3 graph vertex whose only turn is forbidden (they block paths). ``in_sub`` are the
+    component's subgraph vertices and ``sub_deg`` their subgraph valence, indexed from ``v0``.
+    Returns ``(nodes, chains, by_start)`` (see :func:`_chains`).
+    """
+    nodes = set(int(v) for v in in_sub if sub_deg[v - v0] != 2 or v in terminals)
+    gdeg = g.degree
+    for v in in_sub:
+        v = int(v)
+        if v in nodes or gdeg[v] < 3:
+            continue
+        a, b = [x for x in range(g.indptr[v], g.indptr[v + 1]) if sub_arc[x]]
+        if not _turn_allowed(g, turn_ptr, turn_ok, int(g.arc_rev[a]), b):
+            nodes.add(v)
+    chains, by_start = _chains(g, sub_arc, nodes, arc_len)
+    return nodes, chains, by_start
+
+
 def _chains(g, sub_arc: np.ndarray, nodes: set, arc_len: np.ndarray) -> tuple[list[Chain], dict]:
     """Both directions of every chain; ``by_start[node]`` lists chain indices leaving a node."""
     chains: list[Chain] = []
@@ -220,17 +242,9 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
     zone_owner = _junction_zones(g, sub_arc, v0, v1, arc_len, junctions, zone_px)
 
     for _ in range(max_rounds):
-        nodes = set(int(v) for v in in_sub if sub_deg[v - v0] != 2 or v in terminals)
-        # Valence-2 vertices of a valence ≥ 3 graph vertex whose only turn is forbidden block paths.
-        for v in in_sub:
-            v = int(v)
-            if v in nodes or gdeg[v] < 3:
-                continue
-            a, b = [x for x in range(g.indptr[v], g.indptr[v + 1]) if sub_arc[x]]
-            if not _turn_allowed(g, turn_ptr, turn_ok, int(g.arc_rev[a]), b):
-                nodes.add(v)
+        nodes, chains, by_start = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, terminals, turn_ptr, turn_ok,
+                                                  arc_len)
         through = {v for v in passable if v in terminals and sub_deg[v - v0] == 2}
-        chains, by_start = _chains(g, sub_arc, nodes, arc_len)
         found: dict[tuple, tuple] = {}
         budget_hit = False
         for s in sorted(terminals):

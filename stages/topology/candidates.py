@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from stages.geometry import arc_length, point_at_arc, turn_deg
 from stages.topology import TopologyConfig
-from stages.topology.allowed_paths import _chains, enumerate_allowed_paths
+from stages.topology.allowed_paths import enumerate_allowed_paths, subgraph_chains
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.key_vertices import find_key_vertices, snap_position
@@ -347,7 +347,8 @@ def offer_uncovered_chains(raw: list[dict], ex: "_Extractor") -> list[dict]:
     stroke's loop between a junction and a key vertex that shorter routes join too, so the direct path
     was beyond the per-pair cap — the chain's ink had no candidate and no selection could cover it
     (``val_qd_broccoli_1_clean``: a 223-px loop lost). The chain between its two nodes is offered as it
-    is; a node that is not a key vertex becomes a synthetic one (as the enumeration promotes them).
+    is (split where a turn is forbidden, as the enumeration splits it); a node that is not a key vertex
+    becomes a synthetic one (as the enumeration promotes them).
     """
     g = ex.g
     covered = np.zeros(len(g.edges), bool)
@@ -366,9 +367,8 @@ def offer_uncovered_chains(raw: list[dict], ex: "_Extractor") -> list[dict]:
         sub_arc[a0:a1] = ex.sub_edge[g.arc_edge[a0:a1]]
         sub_deg = np.bincount(ex.tails[a0:a1][sub_arc[a0:a1]] - v0, minlength=v1 - v0)
         term = ex.terminals.setdefault(c, {})
-        nodes = {int(v) + v0 for v in np.nonzero((sub_deg > 0) & (sub_deg != 2))[0]} | \
-            {v for v in term if sub_deg[v - v0] > 0}
-        chains, _ = _chains(g, sub_arc, nodes, ex.arc_len)
+        in_sub = np.nonzero(sub_deg > 0)[0] + v0
+        _, chains, _ = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, term, ex.turn_ptr, ex.turn_ok, ex.arc_len)
         for ch in chains[::2]:                                   # one direction of each
             if not orphan[g.arc_edge[np.asarray(ch.arcs)]].any():
                 continue
