@@ -61,17 +61,30 @@ def _turn_allowed(g, turn_ptr, turn_ok, a_in: int, a_out: int) -> bool:
     return bool(turn_ok[turn_ptr[a_in] + (a_out - g.indptr[v])])
 
 
+def component_subgraph(g, sub_edge: np.ndarray, comp: int) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray]:
+    """One component's covering subgraph: ``(v0, v1, sub_arc, sub_deg, in_sub)``.
+
+    ``sub_arc`` bool (A,) marks the component's arcs of subgraph edges, ``sub_deg`` (v1 - v0,) is each
+    vertex's subgraph valence and ``in_sub`` the vertices (global ids) with at least one such arc.
+    """
+    v0, v1 = int(g.comp_ptr[comp]), int(g.comp_ptr[comp + 1])
+    a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
+    sub_arc = np.zeros(len(g.indices), bool)
+    sub_arc[a0:a1] = sub_edge[g.arc_edge[a0:a1]]
+    tails = np.repeat(np.arange(v0, v1), np.diff(g.indptr[v0:v1 + 1]))
+    sub_deg = np.bincount(tails[sub_arc[a0:a1]] - v0, minlength=v1 - v0)
+    return v0, v1, sub_arc, sub_deg, np.nonzero(sub_deg > 0)[0] + v0
+
+
 def subgraph_chains(g, sub_arc: np.ndarray, in_sub: np.ndarray, sub_deg: np.ndarray, v0: int, terminals,
-                    turn_ptr, turn_ok, arc_len: np.ndarray) -> tuple[set, list[Chain], dict]:
-    """The nodes of one component's covering subgraph and the chains between them.
+                    gdeg: np.ndarray, turn_ptr, turn_ok, arc_len: np.ndarray) -> tuple[set, list[Chain], dict]:
+    """The nodes of one component's covering subgraph (:func:`component_subgraph`) and the chains between them.
 
     Nodes are key vertices (``terminals``), vertices of subgraph valence ≠ 2, and valence-2 vertices of a
-    valence ≥ 3 graph vertex whose only turn is forbidden (they block paths). ``in_sub`` are the
-    component's subgraph vertices and ``sub_deg`` their subgraph valence, indexed from ``v0``.
+    valence ≥ 3 graph vertex (``gdeg``: graph valence) whose only turn is forbidden (they block paths).
     Returns ``(nodes, chains, by_start)`` (see :func:`_chains`).
     """
     nodes = set(int(v) for v in in_sub if sub_deg[v - v0] != 2 or v in terminals)
-    gdeg = g.degree
     for v in in_sub:
         v = int(v)
         if v in nodes or gdeg[v] < 3:
@@ -228,13 +241,7 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
     -------
     EnumerationResult
     """
-    v0, v1 = int(g.comp_ptr[comp]), int(g.comp_ptr[comp + 1])
-    a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
-    sub_arc = np.zeros(len(g.indices), bool)
-    sub_arc[a0:a1] = sub_edge[g.arc_edge[a0:a1]]
-    tails = np.repeat(np.arange(v0, v1), np.diff(g.indptr[v0:v1 + 1]))
-    sub_deg = np.bincount(tails[sub_arc[a0:a1]] - v0, minlength=v1 - v0)
-    in_sub = np.nonzero(sub_deg > 0)[0] + v0
+    v0, v1, sub_arc, sub_deg, in_sub = component_subgraph(g, sub_edge, comp)
     gdeg = g.degree
     result = EnumerationResult()
     if len(in_sub) == 0:
@@ -242,8 +249,8 @@ def enumerate_allowed_paths(g, sub_edge: np.ndarray, comp: int, terminals: dict,
     zone_owner = _junction_zones(g, sub_arc, v0, v1, arc_len, junctions, zone_px)
 
     for _ in range(max_rounds):
-        nodes, chains, by_start = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, terminals, turn_ptr, turn_ok,
-                                                  arc_len)
+        nodes, chains, by_start = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, terminals, gdeg, turn_ptr,
+                                                  turn_ok, arc_len)
         through = {v for v in passable if v in terminals and sub_deg[v - v0] == 2}
         found: dict[tuple, tuple] = {}
         budget_hit = False

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from stages.geometry import arc_length, point_at_arc, turn_deg
 from stages.topology import TopologyConfig
-from stages.topology.allowed_paths import enumerate_allowed_paths, subgraph_chains
+from stages.topology.allowed_paths import component_subgraph, enumerate_allowed_paths, subgraph_chains
 from stages.topology.constrained_path import constrained_walk
 from stages.topology.coverage import CoverageState, band_pixels, edge_coverage, gather
 from stages.topology.key_vertices import find_key_vertices, snap_position
@@ -353,22 +353,17 @@ def offer_uncovered_chains(raw: list[dict], ex: "_Extractor") -> list[dict]:
     g = ex.g
     covered = np.zeros(len(g.edges), bool)
     for p in raw:
-        vs = np.asarray(p["vertices"], np.int64)
-        if len(vs) > 1:
-            covered[ex.edge_ids(vs[:-1], vs[1:])] = True
+        covered[g.arc_edge[np.asarray(p["arcs"], np.int64)]] = True
     orphan = ex.sub_edge & ~covered
     if not orphan.any():
         return raw
     out = list(raw)
+    gdeg = g.degree
     for c in np.unique(ex.comp_of[g.edges[orphan, 0]]).tolist():
-        v0, v1 = int(g.comp_ptr[c]), int(g.comp_ptr[c + 1])
-        a0, a1 = int(g.indptr[v0]), int(g.indptr[v1])
-        sub_arc = np.zeros(len(g.indices), bool)
-        sub_arc[a0:a1] = ex.sub_edge[g.arc_edge[a0:a1]]
-        sub_deg = np.bincount(ex.tails[a0:a1][sub_arc[a0:a1]] - v0, minlength=v1 - v0)
+        v0, _, sub_arc, sub_deg, in_sub = component_subgraph(g, ex.sub_edge, c)
         term = ex.terminals.setdefault(c, {})
-        in_sub = np.nonzero(sub_deg > 0)[0] + v0
-        _, chains, _ = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, term, ex.turn_ptr, ex.turn_ok, ex.arc_len)
+        _, chains, _ = subgraph_chains(g, sub_arc, in_sub, sub_deg, v0, term, gdeg, ex.turn_ptr, ex.turn_ok,
+                                       ex.arc_len)
         for ch in chains[::2]:                                   # one direction of each
             if not orphan[g.arc_edge[np.asarray(ch.arcs)]].any():
                 continue

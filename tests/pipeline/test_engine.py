@@ -6,6 +6,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -104,7 +105,7 @@ def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, imag
                 os.kill(pid, 0)
             except OSError:
                 break
-            __import__("time").sleep(0.05)
+            time.sleep(0.05)
     assert list(marker_dir.iterdir()) == []
 
 
