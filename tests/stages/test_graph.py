@@ -448,10 +448,15 @@ def test_streamline_edges_equal_the_three_key_lexsort():
 
 def test_cross_section_argsort_is_a_stable_argsort():
     """The kernel's own argsort of a cross-section's crossings (no compiled quicksort) orders like a
-    stable sort, ties included."""
-    from stages.graph.cross_section import _argsort_insertion
+    stable sort, ties included, also on the two-run shape a cross-section gives (one side ascending,
+    the other descending) and on sizes that are not powers of two."""
+    from stages.graph.cross_section import _argsort_stable
 
     rng = np.random.default_rng(3)
-    for n in (0, 1, 2, 7, 16, 40):
+    for n in (0, 1, 2, 3, 7, 16, 40, 129, 1000):
         a = np.round(rng.normal(size=n + 3), 1)   # rounded: ties
-        np.testing.assert_array_equal(_argsort_insertion(a, n), np.argsort(a[:n], kind="stable"))
+        np.testing.assert_array_equal(_argsort_stable(a, n), np.argsort(a[:n], kind="stable"))
+        half = n // 2
+        two_runs = np.concatenate([[0.0], np.round(np.linspace(0.1, 3, half), 1),
+                                   -np.round(np.linspace(0.1, 3, n - half), 1)])[:n]
+        np.testing.assert_array_equal(_argsort_stable(two_runs, n), np.argsort(two_runs, kind="stable"))
