@@ -320,7 +320,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         if k > 1:
             scale = 1.0 / k
             grey = downsample(grey, k)
-            notes.append(f"strokes about {width:.1f} px wide: working at 1/{k} resolution "
+            notes.append(f"{_width_words(width, mask)}: working at 1/{k} resolution "
                          "(prep.downsample; the curves are mapped back)")
     if scale != 1.0:
         # The band again at the internal resolution; specks are dropped by their area in the drawing.
@@ -337,6 +337,15 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
     """``grey`` blurred by a Gaussian of ``sigma`` px (itself when ``sigma`` is 0)."""
     return ndimage.gaussian_filter(grey, sigma) if sigma > 0 else grey
+
+
+def _width_words(width: float, mask: np.ndarray) -> str:
+    """How the console names the ink's width: a filled area's skeleton is a few pixels long, so its
+    area per skeleton length (thousands of px on a filled square) is no width to show a user."""
+    across = min(int(np.any(mask, axis=1).sum()), int(np.any(mask, axis=0).sum()))
+    if width > across:
+        return f"ink filled in areas up to {across} px across, not drawn in strokes"
+    return f"strokes about {width:.1f} px wide"
 
 
 def stroke_width(mask: np.ndarray) -> float:

@@ -283,6 +283,18 @@ def test_wide_strokes_are_downsampled_pixel_aligned():
     assert 3 < prep.stroke_width(out["mask"]) < 5.5
 
 
+def test_a_filled_area_is_not_called_a_stroke_thousands_of_pixels_wide():
+    """A filled square's skeleton is a few pixels long, so area over skeleton length is no width: the
+    console says filled areas and their size instead (it said "strokes about 37279.2 px wide")."""
+    page = Image.new("L", (500, 500), 255)
+    ImageDraw.Draw(page).rectangle([100, 100, 399, 399], fill=0)
+    out = prep.run(CFG, _encode(page, "PNG"))
+    assert out.data["scale"] < 1 and out.data["stroke_width"] > 300     # the estimate itself is unchanged
+    assert len(out.notes) == 1 and "px wide" not in out.notes[0]
+    assert "filled in areas up to 300 px across" in out.notes[0]
+    assert prep.run(CFG, _wide_ellipse()).notes[0].startswith("strokes about 15.2 px wide")   # strokes stay strokes
+
+
 def test_strokes_below_the_downsampling_width_keep_the_resolution():
     out = prep.run(CFG, _wide_ellipse(width=5))
     assert out.data["stroke_width"] < CFG["downsample"]["above_width"]
