@@ -173,8 +173,11 @@ def load_grey(path: Path) -> np.ndarray:
     """
     from PIL import Image
 
+    from PIL import ImageOps
+
     with Image.open(path) as im:
         im.load()
+        im = ImageOps.exif_transpose(im)   # upright, as the prep stage reads it
         if im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info):
             rgba = im.convert("RGBA")
             bg = Image.new("RGBA", rgba.size, (255, 255, 255, 255))

@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "7"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "8"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
-#                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey
+#                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
+#                     8: an EXIF orientation is applied (the drawing upright, as viewers show it)
 
 
 @dataclass

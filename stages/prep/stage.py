@@ -70,8 +70,12 @@ from stages.prep import PrepConfig
 _EIGHT = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]])
 
 
-def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:
-    """Decode PNG/JPEG/TIFF/BMP bytes into grey levels over white.
+def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
+    """Decode PNG/JPEG/TIFF/BMP bytes into grey levels over white, upright as a viewer shows them.
+
+    An EXIF orientation (a phone photo, many scanners' JPEG and TIFF) is applied, as every image viewer
+    and browser does: the curves then lie on the drawing the user sees, in its width and height. Of a
+    multi-page file (TIFF, GIF) the first page is read, and a note says so.
 
     Parameters
     ----------
@@ -86,6 +90,8 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:
         float64 (H, W) in [0, 1], 1 = white; alpha composited over white.
     mode : str
         The source image mode (e.g. ``"RGBA"``, ``"I;16"``).
+    notes : list of str
+        One line per thing the user should know (pages left out).
 
     Raises
     ------
@@ -118,7 +124,15 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str]:
     except (OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"corrupt or truncated image ({exc})") from None
     mode = img.mode
-    return _to_grey(img), mode
+    notes = []
+    pages = getattr(img, "n_frames", 1)
+    if pages > 1:
+        notes.append(f"{pages} pages (frames) in the file: the first is vectorised")
+    if img.getexif().get(0x0112, 1) != 1:   # EXIF Orientation: 1 = upright as stored
+        from PIL import ImageOps
+
+        img = ImageOps.exif_transpose(img)
+    return _to_grey(img), mode, notes
 
 
 def _to_grey(img) -> np.ndarray:
@@ -268,7 +282,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         ``grey`` float32 (H, W) and ``mask`` bool (H, W); see stages/INTERFACES.md.
     """
     c = from_section(PrepConfig, cfg, "prep")
-    grey, mode = decode_image(image_bytes, c.max_pixels)
+    grey, mode, decode_notes = decode_image(image_bytes, c.max_pixels)
     if c.contrast.enabled:
         grey = normalise_contrast(grey, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
     else:
@@ -301,7 +315,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     if ink > c.max_ink_fraction:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     h, w = grey.shape
-    notes: list[str] = []
+    notes: list[str] = list(decode_notes)
     scale, width = 1.0, None
     if c.supersample.enabled or c.downsample.enabled:
         width = stroke_width(mask)

@@ -151,6 +151,41 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
     assert all(abs(c["width"] - 16) < 2 for c in curves)      # widths in the drawing's pixels too
 
 
+@pytest.mark.slow
+def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(tmp_path, cli):
+    """An EXIF orientation (phone photos, scanners' JPEGs) is applied: the SVG has the size and the
+    curves the place a viewer shows; of a multi-page TIFF the first page is vectorised, and it says so."""
+    import json
+
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    (tmp_path / "in").mkdir()
+    stored = Image.new("L", (300, 200), 255)   # an L as stored: down x = 50, then along y = 170
+    d = ImageDraw.Draw(stored)
+    d.line([(50, 30), (50, 170)], fill=0, width=5)
+    d.line([(50, 170), (250, 170)], fill=0, width=5)
+    exif = Image.Exif()
+    exif[0x0112] = 6                            # "rotate 90° clockwise to display"
+    stored.save(tmp_path / "in" / "photo.jpg", exif=exif, quality=95)
+    pages = [Image.new("L", (200, 160), 255) for _ in range(3)]
+    for k, page in enumerate(pages):
+        ImageDraw.Draw(page).line([(20, 20 + 40 * k), (180, 80)], fill=0, width=4)
+    pages[0].save(tmp_path / "in" / "scan.tif", save_all=True, append_images=pages[1:])
+    proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "3 pages (frames) in the file: the first is vectorised" in proc.stderr
+    # Displayed, the photo is 200 × 300: stored (x, y) shows at (199 − y, x).
+    assert 'viewBox="0 0 200 300"' in (tmp_path / "out" / "photo.svg").read_text()
+    pts = np.concatenate([np.asarray(c["points"]) for c in
+                          json.loads((tmp_path / "out" / "photo.json").read_text())["curves"]])
+    across = (np.abs(pts[:, 1] - 50.5) < 2) & (pts[:, 0] > 24) & (pts[:, 0] < 175)
+    down = (np.abs(pts[:, 0] - 29.5) < 2) & (pts[:, 1] > 45) & (pts[:, 1] < 256)
+    assert (across | down).mean() > 0.97
+    curves = json.loads((tmp_path / "out" / "scan.json").read_text())["curves"]
+    assert len(curves) == 1 and np.asarray(curves[0]["points"])[:, 1].min() > 15   # page 1's line only
+
+
 # What only computing needs: over a second of start-up that a run whose artifacts are all stored never pays.
 HEAVY = ("numba", "scipy", "skimage", "torch", "dask", "distributed", "networkx", "pulp")
 
