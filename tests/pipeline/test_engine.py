@@ -395,6 +395,59 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
     assert status["topology"] == status["flow"] == status["export"] == "skipped"
 
 
+def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monkeypatch):
+    """Over ``SYNC_PARALLEL_MAX_PIXELS`` this process runs a task at a time, but the keypoints child
+    (its own memory) still runs beside it: a 300-dpi A4 page took the sum of the two (42 s, 32 s now)."""
+    import threading
+    import time
+
+    from pipeline import runner
+    from pipeline.registry import STAGES
+
+    log, lock = [], threading.Lock()
+
+    def logged(task):
+        with lock:
+            log.append(("start", task.stage, time.perf_counter()))
+        time.sleep(0.15)
+        with lock:
+            log.append(("end", task.stage, time.perf_counter()))
+        return runner.TaskResult(task.image, task.stage, task.key, "computed")
+
+    class FakeChild:   # the child's interface, run on the calling thread
+        def __init__(self, stages):
+            self.stages = stages
+
+        def run(self, task, store_url, upstream):
+            return logged(task)
+
+        def close(self, kill=False):
+            pass
+
+        def join(self, timeout_s=5.0):
+            pass
+
+    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
+    monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
+    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: runner.SYNC_PARALLEL_MAX_PIXELS + 1)
+    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+
+    def run(in_child):
+        log.clear()
+        batch = runner.BatchResult(stages=[s.name for s in STAGES])
+        batch.results["a.png"] = {}
+        runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=in_child)
+        return {(kind, stage): t for kind, stage, t in log}
+
+    when = run(("keypoints",))
+    assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
+    # never two tasks at once in this process: each task of this process starts after the previous ended
+    mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if s.name != "keypoints")
+    assert all(b[0] >= a[1] for a, b in zip(mine, mine[1:]))
+    when = run(())   # the keypoints on a thread of this process: one task at a time, as before
+    assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
+
+
 def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg):
     """``runtime.keypoints_process``: an in-process run computes the keypoints in a child process
     (beside the field and graph on this process's threads, free of the GIL) with the same artifact;
