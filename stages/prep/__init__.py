@@ -15,7 +15,8 @@ from stages.lazy import lazy_names
 STAGE_VERSION = "8"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
-#                     8: an EXIF orientation is applied (the drawing upright, as viewers show it)
+#                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
+#                        lighting is divided out (prep.lighting)
 
 
 @dataclass
@@ -26,6 +27,19 @@ class ContrastConfig:
     low_percentile: float
     high_percentile: float
     min_contrast: float
+
+
+@dataclass
+class LightingConfig:
+    """``prep.lighting``: divide out the paper's uneven brightness (a photographed drawing, a shadow)."""
+
+    enabled: bool
+    window_px: float
+    min_range: float
+
+    def __post_init__(self) -> None:
+        if self.window_px < 3 or not 0 <= self.min_range <= 1:
+            raise InputError("prep.lighting: need window_px ≥ 3 and 0 ≤ min_range ≤ 1")
 
 
 @dataclass
@@ -74,6 +88,7 @@ class PrepConfig:
     paper_grain_sigmas: float
     grain_smoothing: float
     max_ink_fraction: float
+    lighting: LightingConfig
     contrast: ContrastConfig
     supersample: SupersampleConfig
     downsample: DownsampleConfig
@@ -94,7 +109,7 @@ def source_size(data: dict, internal_shape: tuple[int, int]) -> tuple[int, int]:
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
-    "stages.prep.stage": ("run", "decode_image", "normalise_contrast", "paper_statistics", "narrow_band",
+    "stages.prep.stage": ("run", "decode_image", "flatten_lighting", "normalise_contrast", "paper_statistics", "narrow_band",
                           "stroke_width", "soft_edges", "supersample_factor", "supersample",
                           "downsample_factor", "downsample"),
 })

@@ -7,6 +7,13 @@ Choices made on purpose
 -----------------------
 * **Alpha** is composited over white (the authors' detector ignores alpha, which their issue #7
   traces to blank predictions on transparent PNGs).
+* **Uneven lighting is divided out** (``lighting``; not in the references): a photographed drawing
+  or a scan with a shadow has paper from white to mid-grey, and one threshold then took the shadow
+  for ink or the faint strokes for paper (a rough pencil bird under a 33 % shadow: "no ink stands
+  out of the paper grain"). The paper's brightness (a grey closing over ``window_px``, wider than
+  strokes) divides the grey where it varies by at least ``min_range`` across the page; evenly lit
+  drawings (every validation, realvec_dev and bundled drawing: at most 8 %) are left exactly as they
+  were. Measured on shadowed copies of the validation split (stages/DECISIONS.md, prep).
 * **Contrast normalisation** is done here, not by hand as in the paper: the grey levels at the
   ``low_percentile`` and ``high_percentile`` are stretched to 0 and 1. With mostly-white drawings the
   high percentile is paper, the low one the darkest ink, so faint pencil reaches the same mask
@@ -161,6 +168,82 @@ def _to_grey(img) -> np.ndarray:
     return np.asarray(img, dtype=np.float64) / 255.0
 
 
+#: The darkest shade of the paper :func:`flatten_lighting` divides out, relative to the brightest paper;
+#: darker areas wider than its window are ink (fills), not shadow.
+SHADE_FLOOR = 0.4
+
+
+def flatten_lighting(grey: np.ndarray, window_px: float, min_range: float) -> tuple[np.ndarray, float]:
+    """Divide the paper's uneven brightness out of a grey image (a photographed drawing, a shadow).
+
+    The paper's brightness is estimated as a grey closing (the brightest grey within ``window_px``,
+    then the darkest of those, which restores a shadow's edge) smoothed over the same window, on a
+    copy shrunk to at most 256 px (lighting varies slowly); strokes narrower than the window vanish
+    from it. Within half a window of the image's edge the closing sees light only from inside, so
+    where the light falls off towards an edge it overestimated the paper there (6 % on a shadowed
+    validation drawing: grain specks along the edge); there it fades into a cubic surface fitted to
+    the inner closing. Where that brightness varies across the page by less than ``min_range`` of its
+    brightest (5th–95th percentile) the image is returned as it is.
+
+    Parameters
+    ----------
+    grey : numpy.ndarray
+        float (H, W) in [0, 1], 1 = white.
+    window_px : float
+        Window of the closing in pixels: wider than any stroke, narrower than the lighting's changes.
+    min_range : float
+        Smallest relative variation of the paper's brightness that is divided out.
+
+    Returns
+    -------
+    grey : numpy.ndarray
+        ``grey`` divided by the paper's brightness (clipped to [0, 1]), or ``grey`` itself.
+    range : float
+        The paper's relative variation that was measured.
+    """
+    h, w = grey.shape
+    f = max(1, -(-max(h, w) // 256))
+    hs, ws = max(1, h // f), max(1, w // f)
+    small = grey[:hs * f, :ws * f].reshape(hs, f, ws, f).mean(axis=(1, 3)) if f > 1 else grey
+    k = max(3, int(round(window_px / f)) | 1)
+    paper = ndimage.minimum_filter(ndimage.maximum_filter(small, k), k)
+    # Ink filled over more than the window (a black eye, a silhouette) survives the closing: where it
+    # is darker than any shade the paper takes (below SHADE_FLOOR of the brightest), it is ink, and
+    # the paper there is taken as bright as the page's, so that the fill is neither lightened nor
+    # counted as uneven light.
+    brightest = float(np.percentile(paper, 95))
+    paper = np.where(paper < SHADE_FLOOR * brightest, brightest, paper)
+    paper = _paper_border_fitted(ndimage.uniform_filter(paper, k), k // 2)
+    low, high = np.percentile(paper, [5, 95])
+    variation = float((high - low) / max(high, 1e-6))
+    if variation < min_range:
+        return grey, variation
+    if f > 1:
+        # back to full size: each block's value, smoothed over a block, the edge rows repeated
+        full = np.repeat(np.repeat(paper, f, axis=0), f, axis=1)
+        full = np.pad(full, ((0, h - full.shape[0]), (0, w - full.shape[1])), mode="edge")
+        paper = ndimage.uniform_filter(full, f)
+    return np.clip(grey / np.maximum(paper, 1e-3), 0.0, 1.0), variation
+
+
+def _paper_border_fitted(paper: np.ndarray, margin: int) -> np.ndarray:
+    """``paper`` with its ``margin``-wide edge band faded (linearly, to the edge) into a cubic surface
+    fitted by least squares to the inside; unchanged when the inside is too small to fit."""
+    h, w = paper.shape
+    if margin < 1 or h <= 2 * margin + 4 or w <= 2 * margin + 4:
+        return paper
+    yy, xx = np.mgrid[0:h, 0:w]
+    y, x = (2.0 * yy / h - 1.0).ravel(), (2.0 * xx / w - 1.0).ravel()
+    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, x ** 3, x * x * y, x * y * y, y ** 3], axis=1)
+    inner = np.zeros((h, w), bool)
+    inner[margin:h - margin, margin:w - margin] = True
+    coef, *_ = np.linalg.lstsq(basis[inner.ravel()], paper[inner], rcond=None)
+    fitted = (basis @ coef).reshape(h, w)
+    edge = np.minimum(np.minimum(yy, h - 1 - yy), np.minimum(xx, w - 1 - xx))
+    keep = np.clip(edge / margin, 0.0, 1.0)
+    return keep * paper + (1.0 - keep) * fitted
+
+
 def normalise_contrast(grey: np.ndarray, low_percentile: float, high_percentile: float,
                        min_contrast: float) -> np.ndarray:
     """Stretch grey levels so the paper is white and the darkest ink is black.
@@ -283,6 +366,12 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     """
     c = from_section(PrepConfig, cfg, "prep")
     grey, mode, decode_notes = decode_image(image_bytes, c.max_pixels)
+    notes: list[str] = list(decode_notes)
+    if c.lighting.enabled:
+        grey, variation = flatten_lighting(grey, c.lighting.window_px, c.lighting.min_range)
+        if variation >= c.lighting.min_range:
+            notes.append(f"uneven lighting (the paper's brightness varies by {variation:.0%}): divided out "
+                         "(prep.lighting)")
     if c.contrast.enabled:
         grey = normalise_contrast(grey, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
     else:
@@ -315,7 +404,6 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     if ink > c.max_ink_fraction:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     h, w = grey.shape
-    notes: list[str] = list(decode_notes)
     scale, width = 1.0, None
     if c.supersample.enabled or c.downsample.enabled:
         width = stroke_width(mask)

@@ -186,6 +186,38 @@ def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(t
     assert len(curves) == 1 and np.asarray(curves[0]["points"])[:, 1].min() > 15   # page 1's line only
 
 
+@pytest.mark.slow
+def test_a_photographed_sketch_with_a_shadow_comes_out_as_if_evenly_lit(tmp_path, cli):
+    """``prep.lighting``: pencil strokes under a 40 % shadow give the curves of the evenly lit page
+    (a loop, a zigzag joined through its corners, a line), and the console says the lighting was evened."""
+    import json
+
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    def page(shadow):
+        img = Image.new("L", (420, 360), 235)
+        d = ImageDraw.Draw(img)
+        d.ellipse([40, 40, 200, 170], outline=150, width=3)
+        d.line([(230, 60), (280, 160), (330, 60), (380, 160)], fill=150, width=3)
+        d.line([(50, 280), (380, 240)], fill=150, width=3)
+        y, x = np.mgrid[0:360, 0:420]
+        a = np.asarray(img, np.float64) * (1.0 - shadow * (x / 420.0) * (0.4 + 0.6 * y / 360.0))
+        return Image.fromarray(a.astype(np.uint8))
+
+    (tmp_path / "in").mkdir()
+    page(0.4).save(tmp_path / "in" / "photo.png")
+    page(0.0).save(tmp_path / "in" / "scan.png")
+    proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "photo.png: prep: uneven lighting" in proc.stderr and "scan.png: prep: uneven" not in proc.stderr
+    shadowed, even = (json.loads((tmp_path / "out" / f"{n}.json").read_text())["curves"] for n in ("photo", "scan"))
+    assert len(shadowed) == len(even) == 3
+    for a, b in zip(sorted(shadowed, key=lambda c: c["points"][0]), sorted(even, key=lambda c: c["points"][0])):
+        pa, pb = np.asarray(a["points"]), np.asarray(b["points"])
+        assert np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1).max() < 1.5   # the same curve
+
+
 # What only computing needs: over a second of start-up that a run whose artifacts are all stored never pays.
 HEAVY = ("numba", "scipy", "skimage", "torch", "dask", "distributed", "networkx", "pulp")
 

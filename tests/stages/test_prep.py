@@ -295,6 +295,60 @@ def test_a_filled_area_is_not_called_a_stroke_thousands_of_pixels_wide():
     assert prep.run(CFG, _wide_ellipse()).notes[0].startswith("strokes about 15.2 px wide")   # strokes stay strokes
 
 
+def _pencil_page(shadow: float) -> np.ndarray:
+    """Grey strokes (a loop, a zigzag, a line) on 0.92 paper, darkened by ``shadow`` towards one corner."""
+    page = Image.new("L", (420, 360), 235)
+    d = ImageDraw.Draw(page)
+    d.ellipse([40, 40, 200, 170], outline=150, width=3)
+    d.line([(230, 60), (280, 160), (330, 60), (380, 160)], fill=150, width=3)
+    d.line([(50, 280), (380, 240)], fill=150, width=3)
+    a = np.asarray(page, np.float64) / 255.0
+    y, x = np.mgrid[0:360, 0:420]
+    return a * (1.0 - shadow * (x / 420.0) * (0.4 + 0.6 * y / 360.0))
+
+
+def test_even_lighting_is_left_exactly_as_it_is():
+    grey = _pencil_page(0.0)
+    out, variation = prep.flatten_lighting(grey, 81, 0.15)
+    assert out is grey and variation < 0.02
+
+
+def test_a_black_fill_wider_than_the_window_is_ink_not_shade():
+    """A filled disc 200 px across (wider than the 81-px window) survives the closing; it is darker
+    than paper in any shade, so it is neither counted as uneven light nor lightened under a shadow."""
+    grey = _pencil_page(0.0)
+    y, x = np.mgrid[0:360, 0:420]
+    disc = np.hypot(x - 300, y - 250) < 100
+    grey[disc] = 0.1
+    out, variation = prep.flatten_lighting(grey, 81, 0.15)
+    assert out is grey and variation < 0.02
+    shade = 1.0 - 0.4 * (x / 420.0) * (0.4 + 0.6 * y / 360.0)
+    out, variation = prep.flatten_lighting(grey * shade, 81, 0.15)
+    assert variation > 0.2 and out[disc].max() < 0.35      # still ink after the division
+
+
+def test_a_shadow_is_divided_out_and_the_strokes_are_found_as_without_it():
+    """A pencil drawing under a 40 % shadow (a photographed sketch): without the lighting rule the
+    threshold finds no ink, or the shadow; with it, the band is the one of the evenly lit drawing."""
+    even = prep.run(CFG, _encode(Image.fromarray((_pencil_page(0.0) * 255).astype(np.uint8)), "PNG"))
+    png = _encode(Image.fromarray((_pencil_page(0.4) * 255).astype(np.uint8)), "PNG")
+    flat, variation = prep.flatten_lighting(_pencil_page(0.4), 81, 0.15)
+    assert variation > 0.25
+    paper = _pencil_page(0.0) > 0.85
+    assert np.ptp(np.percentile(flat[paper], [5, 95])) < 0.03          # the paper is flat again
+    shadowed = prep.run(CFG, png)
+    assert any("uneven lighting" in n for n in shadowed.notes)
+    # the same ink pixels as the evenly lit drawing, give or take its edges
+    agree = (shadowed["mask"] == even["mask"]).mean()
+    assert agree > 0.995 and abs(int(shadowed["mask"].sum()) - int(even["mask"].sum())) < 0.1 * even["mask"].sum()
+    off = {**CFG, "lighting": {**CFG["lighting"], "enabled": False}}
+    try:
+        unflattened = prep.run(off, png)["mask"]
+        assert (unflattened == even["mask"]).mean() < agree                # the rule is what made them agree
+    except InputError as exc:                                               # or nothing was found at all
+        assert "no ink" in str(exc)
+
+
 def test_strokes_below_the_downsampling_width_keep_the_resolution():
     out = prep.run(CFG, _wide_ellipse(width=5))
     assert out.data["stroke_width"] < CFG["downsample"]["above_width"]
