@@ -36,7 +36,7 @@ PATH, the bundled example drawing is vectorised. Outputs mirror the input tree u
 (default out/): scans/clean/cat.png -> out/clean/cat.svg and out/clean/cat.json.
 
 Stages (each a config group; key=value overrides its settings):
-  prep       decode, contrast, ink mask          keypoints  endpoints, junctions, corners (CNN)
+  prep       decode, lighting, contrast, ink     keypoints  endpoints, junctions, corners (CNN)
   field      PolyVector frame field              graph      streamlines, cross-sections, clean-up
   topology   key vertices, candidate paths       flow       PolyVector flow of every path
   select     MIP choice of curves                export     SVG + JSON (export.bezier=true: Béziers)
