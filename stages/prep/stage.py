@@ -11,9 +11,9 @@ Choices made on purpose
   or a scan with a shadow has paper from white to mid-grey, and one threshold then took the shadow
   for ink or the faint strokes for paper (a rough pencil bird under a 33 % shadow: "no ink stands
   out of the paper grain"). The paper's brightness (a grey closing over ``window_px``, wider than
-  strokes) divides the grey where it varies by at least ``min_range`` across the page; evenly lit
-  drawings (every validation, realvec_dev and bundled drawing: at most 8 %) are left exactly as they
-  were. Measured on shadowed copies of the validation split (stages/DECISIONS.md, prep).
+  strokes) divides the grey where it varies by at least ``min_range`` (12 %) across the page; evenly
+  lit drawings (every validation, realvec_dev and bundled drawing: at most 8.6 %) are left exactly as
+  they were. Measured on shadowed copies of the validation split (stages/DECISIONS.md, prep).
 * **Contrast normalisation** is done here, not by hand as in the paper: the grey levels at the
   ``low_percentile`` and ``high_percentile`` are stretched to 0 and 1. With mostly-white drawings the
   high percentile is paper, the low one the darkest ink, so faint pencil reaches the same mask
