@@ -171,6 +171,8 @@ def _to_grey(img) -> np.ndarray:
 #: The darkest shade of the paper :func:`flatten_lighting` divides out, relative to the brightest paper;
 #: darker areas wider than its window are ink (fills), not shadow.
 SHADE_FLOOR = 0.4
+#: Fewer blocks than this across the shrunk copy (a strip) and the lighting is left alone.
+MIN_LIGHTING_BLOCKS = 8
 
 
 def flatten_lighting(grey: np.ndarray, window_px: float, min_range: float) -> tuple[np.ndarray, float]:
@@ -203,9 +205,14 @@ def flatten_lighting(grey: np.ndarray, window_px: float, min_range: float) -> tu
     """
     h, w = grey.shape
     f = max(1, -(-max(h, w) // 256))
-    hs, ws = max(1, h // f), max(1, w // f)
-    small = grey[:hs * f, :ws * f].reshape(hs, f, ws, f).mean(axis=(1, 3)) if f > 1 else grey
-    k = max(3, int(round(window_px / f)) | 1)
+    fy, fx = min(f, h), min(f, w)
+    hs, ws = h // fy, w // fx
+    if min(hs, ws) < MIN_LIGHTING_BLOCKS:
+        # a strip a few blocks across (a 10000×20 scan of one line): every block holds ink, none
+        # tells the paper's light
+        return grey, 0.0
+    small = grey[:hs * fy, :ws * fx].reshape(hs, fy, ws, fx).mean(axis=(1, 3)) if f > 1 else grey
+    k = tuple(max(3, int(round(window_px / b)) | 1) for b in (fy, fx))
     paper = ndimage.minimum_filter(ndimage.maximum_filter(small, k), k)
     # Ink filled over more than the window (a black eye, a silhouette) survives the closing: where it
     # is darker than any shade the paper takes (below SHADE_FLOOR of the brightest), it is ink, and
@@ -213,34 +220,34 @@ def flatten_lighting(grey: np.ndarray, window_px: float, min_range: float) -> tu
     # counted as uneven light.
     brightest = float(np.percentile(paper, 95))
     paper = np.where(paper < SHADE_FLOOR * brightest, brightest, paper)
-    paper = _paper_border_fitted(ndimage.uniform_filter(paper, k), k // 2)
+    paper = _paper_border_fitted(ndimage.uniform_filter(paper, k), (k[0] // 2, k[1] // 2))
     low, high = np.percentile(paper, [5, 95])
     variation = float((high - low) / max(high, 1e-6))
     if variation < min_range:
         return grey, variation
     if f > 1:
         # back to full size: each block's value, smoothed over a block, the edge rows repeated
-        full = np.repeat(np.repeat(paper, f, axis=0), f, axis=1)
+        full = np.repeat(np.repeat(paper, fy, axis=0), fx, axis=1)
         full = np.pad(full, ((0, h - full.shape[0]), (0, w - full.shape[1])), mode="edge")
-        paper = ndimage.uniform_filter(full, f)
+        paper = ndimage.uniform_filter(full, (fy, fx))
     return np.clip(grey / np.maximum(paper, 1e-3), 0.0, 1.0), variation
 
 
-def _paper_border_fitted(paper: np.ndarray, margin: int) -> np.ndarray:
-    """``paper`` with its ``margin``-wide edge band faded (linearly, to the edge) into a cubic surface
-    fitted by least squares to the inside; unchanged when the inside is too small to fit."""
+def _paper_border_fitted(paper: np.ndarray, margin: tuple[int, int]) -> np.ndarray:
+    """``paper`` with its edge band (``margin`` rows, columns) faded (linearly, to the edge) into a cubic
+    surface fitted by least squares to the inside; unchanged when the inside is too small to fit."""
     h, w = paper.shape
-    if margin < 1 or h <= 2 * margin + 4 or w <= 2 * margin + 4:
+    my, mx = margin
+    if min(my, mx) < 1 or h <= 2 * my + 4 or w <= 2 * mx + 4:
         return paper
     yy, xx = np.mgrid[0:h, 0:w]
     y, x = (2.0 * yy / h - 1.0).ravel(), (2.0 * xx / w - 1.0).ravel()
     basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, x ** 3, x * x * y, x * y * y, y ** 3], axis=1)
     inner = np.zeros((h, w), bool)
-    inner[margin:h - margin, margin:w - margin] = True
+    inner[my:h - my, mx:w - mx] = True
     coef, *_ = np.linalg.lstsq(basis[inner.ravel()], paper[inner], rcond=None)
     fitted = (basis @ coef).reshape(h, w)
-    edge = np.minimum(np.minimum(yy, h - 1 - yy), np.minimum(xx, w - 1 - xx))
-    keep = np.clip(edge / margin, 0.0, 1.0)
+    keep = np.clip(np.minimum(np.minimum(yy, h - 1 - yy) / my, np.minimum(xx, w - 1 - xx) / mx), 0.0, 1.0)
     return keep * paper + (1.0 - keep) * fitted
 
 

@@ -313,6 +313,18 @@ def test_even_lighting_is_left_exactly_as_it_is():
     assert out is grey and variation < 0.02
 
 
+@pytest.mark.parametrize("shape", [(20, 10000), (10000, 7), (1, 1), (3, 600)])
+def test_the_lighting_estimate_takes_strips_and_specks(shape):
+    """A strip thinner than the shrinking block (a 10000×20 scan of one line) once failed to reshape."""
+    grey = np.full(shape, 0.9)
+    grey[shape[0] // 2, : shape[1] // 2] = 0.2
+    out, variation = prep.flatten_lighting(grey, 81, 0.12)
+    assert out is grey and variation < 0.12
+    shaded = grey * np.linspace(1.0, 0.5, shape[1])[None, :]
+    out, variation = prep.flatten_lighting(shaded, 81, 0.12)
+    assert out.shape == shape and np.isfinite(out).all()
+
+
 def test_a_black_fill_wider_than_the_window_is_ink_not_shade():
     """A filled disc 200 px across (wider than the 81-px window) survives the closing; it is darker
     than paper in any shade, so it is neither counted as uneven light nor lightened under a shadow."""
