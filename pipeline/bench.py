@@ -171,9 +171,7 @@ def load_grey(path: Path) -> np.ndarray:
     The benchmark drops alpha (metrics.md §2.2); inputs such as the authors' RGBA example draw on a
     transparent background, so fidelity needs the composite.
     """
-    from PIL import Image
-
-    from PIL import ImageOps
+    from PIL import Image, ImageOps
 
     with Image.open(path) as im:
         im.load()

@@ -707,8 +707,7 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
 
     def apart(t: Task) -> bool:
         """Whether ``t`` and every running task run in different processes (one in the child): their
-        memories do not add up in one process, so the size rule does not apply (A4 scan at 300 dpi,
-        8.7 Mpx: 42 → 32 s, this process's peak 2.0 GB either way, the child's 1.0 GB)."""
+        memories do not add up in one process, so the size rule does not apply (stages/DECISIONS.md)."""
         return all((t.stage in in_child) != (o.stage in in_child) for _, o in running.values())
 
     def work(i: int, t: Task, alone: bool) -> TaskResult:

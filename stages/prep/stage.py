@@ -375,10 +375,11 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     grey, mode, decode_notes = decode_image(image_bytes, c.max_pixels)
     notes: list[str] = list(decode_notes)
     if c.lighting.enabled:
-        grey, variation = flatten_lighting(grey, c.lighting.window_px, c.lighting.min_range)
-        if variation >= c.lighting.min_range:
+        lit, variation = flatten_lighting(grey, c.lighting.window_px, c.lighting.min_range)
+        if lit is not grey:
             notes.append(f"uneven lighting (the paper's brightness varies by {variation:.0%}): divided out "
                          "(prep.lighting)")
+        grey = lit
     if c.contrast.enabled:
         grey = normalise_contrast(grey, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
     else:
@@ -422,7 +423,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         if factor > 1:
             scale = float(factor)
             grey = supersample(grey, factor, c.supersample.blur)
-            notes.append(f"strokes about {width:.1f} px wide: working at {factor}x resolution "
+            notes.append(f"{_width_words(width, mask)}: working at {factor}x resolution "
                          "(prep.supersample; the curves are mapped back)")
     if scale == 1.0 and c.downsample.enabled:
         k = downsample_factor(width, c.downsample)
