@@ -100,4 +100,5 @@ def widen(old_state: dict, old_cfg: NetConfig, new_cfg: NetConfig) -> dict:
 
     if not can_widen(old_cfg, new_cfg):
         raise ValueError(f"network {new_cfg.to_dict()} is not a widening of {old_cfg.to_dict()}")
-    return widen_state_dict({k: v.float() for k, v in old_state.items()}, KeypointNet(new_cfg))
+    # The wide network is built on the CPU; a checkpoint loaded onto a GPU is brought to it first.
+    return widen_state_dict({k: v.detach().float().cpu() for k, v in old_state.items()}, KeypointNet(new_cfg))
