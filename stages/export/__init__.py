@@ -12,8 +12,9 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "7"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
-#                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed
+STAGE_VERSION = "8"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+#                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
+#                     8: a gap closes between ends closer than the free radius (only each other near)
 
 
 @dataclass

@@ -14,6 +14,10 @@ from stages.export.joins import end_direction
 #: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of
 #: it: the acceptance scorer's meeting radius max(2, w).
 FREE_PX = 2.0
+#: ... except the other curve's own end: an end whose only neighbour is another curve's last
+#: TIP_RADII × max(FREE_PX, width) of arc is free for that end alone (two ends of one broken stroke
+#: closer than our width estimate, which can exceed the drawn width).
+TIP_RADII = 2.0
 
 
 def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_deg: float,
@@ -53,7 +57,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     for n, p in enumerate(pts):
         grid.add(n, p)
     width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where = [], []
+    ends, where, only = [], [], []
     for n, p in enumerate(pts):
         if len(p) < 2:
             continue
@@ -62,10 +66,17 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
             q = p[0 if e == 0 else -1]
             if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
                 continue                                   # a closed loop's end meets its own start
-            if any(o != n and _within(pts[o][idx], q, near).any() for o, idx in grid.near(q, near).items()):
-                continue                                   # at a junction, or beside another curve
+            close = {o: np.asarray(idx)[_within(pts[o][idx], q, near)]
+                     for o, idx in grid.near(q, near).items() if o != n}
+            close = {o: idx for o, idx in close.items() if len(idx)}
+            partner = None
+            if close:
+                partner = _tip_owner(pts, close, TIP_RADII * near)
+                if partner is None:
+                    continue                               # at a junction, or beside another curve
             ends.append((n, e))
             where.append(q)
+            only.append(partner)
     if len(ends) < 2:
         return curves
     where = np.array(where)
@@ -80,7 +91,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
                   if b > a and _within(where[b], where[a], reach)[0]]
     for a, b in near_pairs:
         i, j = ends[a][0], ends[b][0]
-        if i == j:
+        if i == j or only[a] not in (None, ends[b]) or only[b] not in (None, ends[a]):
             continue
         gap = where[b] - where[a]
         d = float(np.hypot(*gap))
@@ -95,3 +106,17 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
             link[ends[a]], link[ends[b]] = ends[b], ends[a]
     return join_linked(curves, link, corner_joints=False) if link else curves
 
+
+
+def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, int] | None:
+    """``(curve, end)`` when the points ``close`` to an end all lie on one other curve within ``reach``
+    of arc from one of its ends (that curve's tip); None otherwise."""
+    if len(close) != 1:
+        return None
+    (o, idx), = close.items()
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts[o], axis=0).T))])
+    if arc[idx].max() <= reach:
+        return o, 0
+    if arc[-1] - arc[idx].min() <= reach:
+        return o, 1
+    return None

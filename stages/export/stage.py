@@ -62,9 +62,9 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
 
 * **Gaps in a stroke** (``gaps``).  Last of all, a faint or grainy stroke whose ink breaks comes out
   as curves end to end, each with two free ends where the drawing has one stroke.  Two free ends (no
-  other curve within max(2 px, w)) of different curves at most ``max(gaps.max_px, gaps.max_widths · w)``
-  apart, each pointing at the other within ``gaps.max_turn_deg``, are joined across the gap, nearest
-  first (:func:`~stages.export.gaps.close_gaps`).
+  other curve within max(2 px, w), or only the other's tip) of different curves at most
+  ``max(gaps.max_px, gaps.max_widths · w)`` apart, each pointing at the other within
+  ``gaps.max_turn_deg``, are joined across the gap, nearest first (:func:`~stages.export.gaps.close_gaps`).
 
 Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
 cutting them moves the false junction to where the curves part, which the ground truth rarely marks.

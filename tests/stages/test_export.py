@@ -660,6 +660,24 @@ def test_a_stroke_broken_by_a_small_gap_is_one_curve():
     assert len(export.run(_cfg(gaps={**CFG["gaps"], "enabled": False}), **inputs).data["curves"]) == 2
 
 
+def test_a_gap_narrower_than_the_free_radius_closes_between_the_two_tips():
+    """Two ends of one broken stroke 2.5 px apart, each estimated 3.2 px wide: each end has the other
+    curve within max(2, w), so neither counted as free and the break stayed (val_qd_trumpet_1_pencil,
+    val_s3_17_pencil); an end near nothing but the other curve's tip is free for that tip alone."""
+    from stages.export.gaps import close_gaps
+
+    left = _piece(1, _line([10, 20], [50, 20]), [0, 0], [-1, -1], width=3.2)
+    right = _piece(2, _line([52.5, 20.5], [90, 21]), [0, 0], [-1, -1], width=3.2)
+    out = close_gaps([left, right], 6.0, 2.0, 30.0, 5.0)
+    assert len(out) == 1 and sorted(out[0]["parts"]) == [1, 2]
+    # Beside the tip, a third curve passing by: a junction, not a gap; the ends stay.
+    by = _piece(3, _line([51, 0], [51, 40]), [1, 1], [4, 5])
+    assert len(close_gaps([left, right, by], 6.0, 2.0, 30.0, 5.0)) == 3
+    # Near the *middle* of another curve (a T's stem short of its bar): not a tip; stays.
+    bar = _piece(4, _line([52.5, 0], [52.5, 40]), [1, 1], [6, 7])
+    assert len(close_gaps([left, bar], 6.0, 2.0, 30.0, 5.0)) == 2
+
+
 @pytest.mark.parametrize("case", ["wide", "askew", "at_a_junction", "own_ends"])
 def test_gaps_that_are_not_a_broken_stroke_stay(case):
     from stages.export.gaps import close_gaps
