@@ -451,9 +451,12 @@ def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
 
 def _width_words(width: float, mask: np.ndarray) -> str:
     """How the console names the ink's width: a filled area's skeleton is a few pixels long, so its
-    area per skeleton length (thousands of px on a filled square) is no width to show a user."""
+    area per skeleton length (thousands of px on a filled square) is no width to show a user.
+
+    Only a width well beyond the ink's extent (twice) means a fill: a 1-px line's estimate (1.2 px)
+    exceeds its 1-px extent across, and it is a stroke."""
     across = min(int(np.any(mask, axis=1).sum()), int(np.any(mask, axis=0).sum()))
-    if width > across:
+    if width > 2 * across:
         return f"ink filled in areas up to {across} px across, not drawn in strokes"
     return f"strokes about {width:.1f} px wide"
 

@@ -293,6 +293,11 @@ def test_a_filled_area_is_not_called_a_stroke_thousands_of_pixels_wide():
     assert len(out.notes) == 1 and "px wide" not in out.notes[0]
     assert "filled in areas up to 300 px across" in out.notes[0]
     assert prep.run(CFG, _wide_ellipse()).notes[0].startswith("strokes about 15.2 px wide")   # strokes stay strokes
+    # A 1-px line alone in a 3-px strip: its width estimate (1.2 px) exceeds its 1-px extent, still a stroke.
+    strip = np.full((3, 1000), 255, np.uint8)
+    strip[1, 100:900] = 0
+    note = prep.run(CFG, _encode(Image.fromarray(strip), "PNG")).notes[0]
+    assert note.startswith("strokes about 1.") and "filled" not in note
 
 
 def _pencil_page(shadow: float) -> np.ndarray:
