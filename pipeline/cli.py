@@ -485,7 +485,8 @@ class ExitCode:
         the same command again resumes.
 
         ``single`` = (job, config name): a command line of plain overrides (no sweep, no Hydra flag,
-        no ``hydra.`` key) is one job whose config is composed once with Hydra's compose API and
+        no ``hydra.`` key) is one job whose config is composed once with Hydra's compose API (and
+        read back from :mod:`pipeline.config_cache` when the same command ran on the same files) and
         passed to ``job``; ``@hydra.main`` composes it twice (once to find the run mode), about 0.3 s
         of every run. The config is the same: this app's Hydra run does nothing else (run dir ``.``,
         no output subdir, no log files).
@@ -500,11 +501,9 @@ class ExitCode:
         try:
             if single is not None and plain:
                 job, config_name = single
-                from hydra import compose, initialize_config_module
+                from pipeline.config_cache import compose_config
 
-                with initialize_config_module(config_module="conf", version_base=None):
-                    cfg = compose(config_name, overrides=args)
-                self.job(job, cfg)
+                self.job(job, compose_config(config_name, args))
             else:
                 with no_stray_multirun(), hydra_raises():
                     app()

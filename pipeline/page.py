@@ -73,14 +73,12 @@ def planned_keys(store: ArtifactStore, image: str | Path, overrides: list[str] |
     CLI does, ``<stem>.keypoints.json`` beside the image included), when its last stage is stored;
     otherwise :func:`latest_keys`.
     """
-    from hydra import compose, initialize_config_module
-
+    from pipeline.config_cache import compose_config
     from pipeline.registry import active_stages
     from pipeline.runner import plan
 
     try:
-        with initialize_config_module(config_module="conf", version_base=None):
-            cfg = compose(config_name="config", overrides=list(overrides or []))
+        cfg = compose_config("config", list(overrides or []))
         (tasks,) = plan([image], cfg, active_stages())
     except ValueError:  # a malformed edits file beside the image (pipeline.edits.EditsError)
         return latest_keys(store, image)

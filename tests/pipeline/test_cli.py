@@ -644,3 +644,35 @@ def test_a_run_makes_few_full_garbage_collections(tmp_path):
     gc_at_exit = json.loads((tmp_path / "gc.json").read_text())
     assert gc_at_exit["threshold"][2] == FULL_COLLECTION_EVERY
     assert gc_at_exit["full"] <= 1, gc_at_exit        # CPython's default thresholds: 4-6 full collections
+
+
+def test_a_composed_config_is_cached_and_composed_again_when_its_files_change(tmp_path, monkeypatch):
+    """pipeline.config_cache: the second composition of a command line is read back (the planted
+    entry proves it), a changed conf file or override makes a new entry, a corrupt one is recomposed."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from pipeline import config_cache
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    first = config_cache.compose_config("config", ["flow.lam=0.3"])
+    (entry,) = config_cache.cache_dir().glob("*.pkl")
+    again = config_cache.compose_config("config", ["flow.lam=0.3"])
+    assert OmegaConf.to_container(again) == OmegaConf.to_container(first) and again.flow.lam == 0.3
+    planted = first.copy()
+    planted.flow.lam = 0.9
+    entry.write_bytes(__import__("pickle").dumps(planted))
+    assert config_cache.compose_config("config", ["flow.lam=0.3"]).flow.lam == 0.9      # read back
+    assert config_cache.compose_config("config", ["flow.lam=0.4"]).flow.lam == 0.4      # another line
+    entry.write_bytes(b"not a pickle")
+    assert config_cache.compose_config("config", ["flow.lam=0.3"]).flow.lam == 0.3      # recomposed
+    # Any change of a conf file changes the digest (a copy of the package with one value edited).
+    copy = tmp_path / "conf"
+    shutil.copytree(config_cache._conf_root(), copy)
+    before = config_cache.config_digest("config", ["flow.lam=0.3"])
+    monkeypatch.setattr(config_cache, "_conf_root", lambda: copy)
+    assert config_cache.config_digest("config", ["flow.lam=0.3"]) == before
+    flow = copy / "flow" / "default.yaml"
+    flow.write_text(flow.read_text() + "\n# edited\n")
+    assert config_cache.config_digest("config", ["flow.lam=0.3"]) != before
