@@ -107,7 +107,6 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     return join_linked(curves, link, corner_joints=False) if link else curves
 
 
-
 def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, int] | None:
     """``(curve, end)`` when the points ``close`` to an end all lie on one other curve within ``reach``
     of arc from one of its ends (that curve's tip); None otherwise."""
