@@ -5,7 +5,11 @@ run, a twentieth of a one-image run from an empty store and half of a fully cach
 config is a pure function of the files of the ``conf`` package, the config name, the overrides and the
 Hydra / OmegaConf versions, so it is pickled under a hash of them in the user's cache
 (``$XDG_CACHE_HOME/polyvec/config``, default ``~/.cache/polyvec/config``) and unpickled (~1 ms) when
-the same command line is run again on the same files. Interpolations stay unresolved in the pickle, as
+the same command line is run again on the same files. A command line that differs from a cached one only
+in values of existing keys (``output=…``, ``store.path=…``, ``flow.lam=0.5``: a λ re-run, the next
+drawing into another folder) starts from the cached composition of the other overrides and sets those
+values with OmegaConf, through the same schema validation; anything else (a config group, a list, a new
+key, a value the schema refuses) is composed by Hydra. Interpolations stay unresolved in the pickle, as
 in a fresh composition (``${oc.env:…}`` reads the environment when it is accessed). Where the cache
 cannot be written (a read-only home), or a cached file cannot be read, the config is composed as before.
 """
@@ -69,20 +73,89 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
     """
     overrides = list(overrides)
     where = cache_dir() / f"{config_digest(config_name, overrides)}.pkl"
-    try:
-        with open(where, "rb") as f:
-            cfg = pickle.load(f)
-        if isinstance(cfg, DictConfig):
-            os.utime(where)                 # recently used: kept by the eviction below
+    cfg = _read(where)
+    if cfg is not None:
+        return cfg
+    rest, values = _value_overrides(overrides)
+    if values:
+        base = cache_dir() / f"{config_digest(config_name, rest)}.pkl"
+        cfg = _read(base)
+        if cfg is None:
+            try:
+                cfg = _compose(config_name, rest)
+            except Exception:  # noqa: BLE001 - the whole line's composition below says what is wrong
+                cfg = None
+            else:
+                _store(base, cfg)          # the base of later lines that change only these values
+        if cfg is not None and _set_values(cfg, values):
+            _store(where, cfg)
             return cfg
-    except Exception:  # noqa: BLE001 - no entry, or one from another Python: compose it again
-        pass
+    cfg = _compose(config_name, overrides)
+    _store(where, cfg)
+    return cfg
+
+
+def _compose(config_name: str, overrides: list[str]) -> DictConfig:
     from hydra import compose, initialize_config_module
 
     with initialize_config_module(config_module="conf", version_base=None):
-        cfg = compose(config_name, overrides=overrides)
-    _store(where, cfg)
+        return compose(config_name, overrides=overrides)
+
+
+def _read(where: Path) -> DictConfig | None:
+    try:
+        with open(where, "rb") as f:
+            cfg = pickle.load(f)
+    except Exception:  # noqa: BLE001 - no entry, or one from another Python: compose it again
+        return None
+    if not isinstance(cfg, DictConfig):
+        return None
+    try:
+        os.utime(where)                     # recently used: kept by the eviction of _store
+    except OSError:
+        pass
     return cfg
+
+
+def _value_overrides(overrides: list[str]) -> tuple[list[str], list[tuple[str, object]]]:
+    """Split the overrides into the rest and ``(key, value)`` changes of one key (not a config group) to
+    a plain value (number, string, bool, null): the overrides :func:`_set_values` may apply to a cached
+    base."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType, ValueType
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except Exception:  # noqa: BLE001 - Hydra's compose reports it
+        return overrides, []
+    groups = {p.name for p in _conf_root().iterdir() if p.is_dir()}     # `runtime=local` picks a file
+    rest, values = [], []
+    for text, o in zip(overrides, parsed):
+        value = o.value() if o.value_type == ValueType.ELEMENT else None
+        if (o.type == OverrideType.CHANGE and o.package is None
+                and ("." in o.key_or_group or o.key_or_group not in groups)
+                and o.value_type == ValueType.ELEMENT and (value is None or isinstance(value, (str, int, float)))):
+            values.append((o.key_or_group, value))
+        else:
+            rest.append(text)
+    return rest, values
+
+
+def _set_values(cfg: DictConfig, values: list[tuple[str, object]]) -> bool:
+    """Set existing plain keys in place (OmegaConf validates them against the schema); False when a key
+    is missing or not a plain value, or a value is refused (Hydra's compose then says why)."""
+    from omegaconf import OmegaConf
+
+    for key, value in values:
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        if not isinstance(node, DictConfig) or leaf not in node or OmegaConf.is_config(node[leaf]):
+            return False
+        try:
+            node[leaf] = value
+        except Exception:  # noqa: BLE001 - a value the schema refuses
+            return False
+    return True
 
 
 def _store(where: Path, cfg: DictConfig) -> None:

@@ -659,7 +659,8 @@ def test_a_composed_config_is_cached_and_composed_again_when_its_files_change(tm
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     first = config_cache.compose_config("config", ["flow.lam=0.3"])
-    (entry,) = config_cache.cache_dir().glob("*.pkl")
+    entry = config_cache.cache_dir() / f"{config_cache.config_digest('config', ['flow.lam=0.3'])}.pkl"
+    assert entry.is_file()
     again = config_cache.compose_config("config", ["flow.lam=0.3"])
     assert OmegaConf.to_container(again) == OmegaConf.to_container(first) and again.flow.lam == 0.3
     planted = first.copy()
@@ -678,3 +679,41 @@ def test_a_composed_config_is_cached_and_composed_again_when_its_files_change(tm
     flow = copy / "flow" / "default.yaml"
     flow.write_text(flow.read_text() + "\n# edited\n")
     assert config_cache.config_digest("config", ["flow.lam=0.3"]) != before
+
+
+def test_a_line_that_changes_only_values_starts_from_the_cached_base(tmp_path, monkeypatch):
+    """pipeline.config_cache: ``output=…``, ``store.path=…``, ``flow.lam=…`` set on the cached
+    composition of the other overrides give Hydra's config exactly (no composition at all); a group, a
+    list, an unknown key or a refused value go through Hydra, with Hydra's error."""
+    from hydra import compose, initialize_config_module
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from omegaconf import OmegaConf
+
+    from pipeline import config_cache
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    config_cache.compose_config("config", ["runtime=local"])
+    loads = []
+    original = ConfigLoaderImpl.load_configuration
+    monkeypatch.setattr(ConfigLoaderImpl, "load_configuration",
+                        lambda self, *a, **k: loads.append(1) or original(self, *a, **k))
+    lines = {
+        ("runtime=local", "output=/tmp/o", "store.path=/tmp/s", "flow.lam=1e-3"): 0,
+        ("runtime=local", "input='my file (1).png'", "keypoints.junction_threshold=null"): 0,
+        ("runtime=local", "prep.downsample.enabled=false", "export.precision=3"): 0,
+        ("flow=default", "flow.lam=0.5"): 1,                                  # a group override
+        ("runtime=local", "keypoints.detection_ensemble=[packaged_procedural]"): 1,   # a list
+    }
+    for line, compositions in lines.items():
+        loads.clear()
+        got = config_cache.compose_config("config", list(line))
+        assert len(loads) == compositions, line
+        with initialize_config_module(config_module="conf", version_base=None):
+            want = compose("config", overrides=list(line))
+        assert OmegaConf.to_container(got) == OmegaConf.to_container(want), line
+    for bad in (["runtime=local", "flow.lam=abc"], ["runtime=local", "flow.nokey=3"], ["runtime=local", "nokey=3"]):
+        with pytest.raises(Exception) as cached:
+            config_cache.compose_config("config", bad)
+        with pytest.raises(Exception) as fresh, initialize_config_module(config_module="conf", version_base=None):
+            compose("config", overrides=bad)
+        assert str(cached.value) == str(fresh.value)
