@@ -717,3 +717,25 @@ def test_a_line_that_changes_only_values_starts_from_the_cached_base(tmp_path, m
         with pytest.raises(Exception) as fresh, initialize_config_module(config_module="conf", version_base=None):
             compose("config", overrides=bad)
         assert str(cached.value) == str(fresh.value)
+
+
+def test_repeated_commands_read_their_config_from_the_cache(tmp_path, cli, monkeypatch):
+    """As a user: the same command twice, then into another output folder, then with the cache
+    corrupted: every run works and writes the same curves; the cache holds the compositions."""
+    import numpy as np
+    from PIL import Image
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    g = np.full((120, 160), 255, np.uint8)
+    g[60:62, 20:140] = 0
+    Image.fromarray(g, "L").save(tmp_path / "line.png")
+    outs = []
+    for k, out in enumerate(["a", "a", "b", "c"]):
+        if k == 3:
+            for entry in (tmp_path / "cache" / "polyvec" / "config").glob("*.pkl"):
+                entry.write_bytes(b"torn")
+        proc = cli("line.png", f"output={out}", "runtime.cluster=sync", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        outs.append((tmp_path / out / "line.svg").read_text())
+    assert len(set(outs)) == 1
+    assert list((tmp_path / "cache" / "polyvec" / "config").glob("*.pkl"))
