@@ -17,13 +17,14 @@ cannot be written (a read-only home), or a cached file cannot be read, the confi
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import os
 import pickle
 import uuid
 from pathlib import Path
 
 from omegaconf import DictConfig
+
+from pipeline.registry import CONF_DIR
 
 #: Cached configs kept; the oldest are removed beyond it (every distinct command line is one file of
 #: about 20 kB).
@@ -37,22 +38,28 @@ def cache_dir() -> Path:
 
 
 def _conf_root() -> Path:
-    spec = importlib.util.find_spec("conf")
-    return Path(list(spec.submodule_search_locations)[0])
+    """The ``conf`` package Hydra composes from."""
+    return CONF_DIR
 
 
-def config_digest(config_name: str, overrides: list[str]) -> str:
-    """Hash of everything a composition depends on: the conf files (names and bytes), the config
-    name, the overrides and the Hydra and OmegaConf versions."""
+def _files_digest() -> bytes:
+    """Hash of the conf files (names and bytes) and the Hydra and OmegaConf versions."""
     import hydra
     import omegaconf
 
-    h = hashlib.sha256()
-    for part in (config_name, hydra.__version__, omegaconf.__version__, *overrides):
-        h.update(part.encode() + b"\0")
+    h = hashlib.sha256(f"{hydra.__version__}\0{omegaconf.__version__}\0".encode())
     root = _conf_root()
     for path in sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in (".yaml", ".yml")):
         h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.digest()
+
+
+def config_digest(config_name: str, overrides: list[str], files: bytes | None = None) -> str:
+    """Hash of everything a composition depends on: the conf files (``files``, :func:`_files_digest`
+    when not given), the config name and the overrides."""
+    h = hashlib.sha256(files if files is not None else _files_digest())
+    for part in (config_name, *overrides):
+        h.update(part.encode() + b"\0")
     return h.hexdigest()[:32]
 
 
@@ -72,13 +79,14 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
         The composed config, equal to a fresh composition.
     """
     overrides = list(overrides)
-    where = cache_dir() / f"{config_digest(config_name, overrides)}.pkl"
+    files = _files_digest()           # read once for both entries below
+    where = cache_dir() / f"{config_digest(config_name, overrides, files)}.pkl"
     cfg = _read(where)
     if cfg is not None:
         return cfg
     rest, values = _value_overrides(overrides)
     if values:
-        base = cache_dir() / f"{config_digest(config_name, rest)}.pkl"
+        base = cache_dir() / f"{config_digest(config_name, rest, files)}.pkl"
         cfg = _read(base)
         if cfg is None:
             try:
@@ -131,11 +139,10 @@ def _value_overrides(overrides: list[str]) -> tuple[list[str], list[tuple[str, o
     groups = {p.name for p in _conf_root().iterdir() if p.is_dir()}     # `runtime=local` picks a file
     rest, values = [], []
     for text, o in zip(overrides, parsed):
-        value = o.value() if o.value_type == ValueType.ELEMENT else None
-        if (o.type == OverrideType.CHANGE and o.package is None
-                and ("." in o.key_or_group or o.key_or_group not in groups)
-                and o.value_type == ValueType.ELEMENT and (value is None or isinstance(value, (str, int, float)))):
-            values.append((o.key_or_group, value))
+        plain = (o.type == OverrideType.CHANGE and o.package is None and o.value_type == ValueType.ELEMENT
+                 and ("." in o.key_or_group or o.key_or_group not in groups))
+        if plain and (o.value() is None or isinstance(o.value(), (str, int, float))):
+            values.append((o.key_or_group, o.value()))
         else:
             rest.append(text)
     return rest, values

@@ -10,6 +10,7 @@ import numpy as np
 from stages.export.corners import join_linked
 from stages.export.end_index import _PointGrid, _within
 from stages.export.joins import end_direction
+from stages.geometry import arc_length
 
 #: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of
 #: it: the acceptance scorer's meeting radius max(2, w).
@@ -113,7 +114,7 @@ def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, i
     if len(close) != 1:
         return None
     (o, idx), = close.items()
-    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts[o], axis=0).T))])
+    arc = arc_length(pts[o])
     if arc[idx].max() <= reach:
         return o, 0
     if arc[-1] - arc[idx].min() <= reach:
