@@ -36,10 +36,16 @@ PATH, the bundled example drawing is vectorised. Outputs mirror the input tree u
 (default out/): scans/clean/cat.png -> out/clean/cat.svg and out/clean/cat.json.
 
 Stages (each a config group; key=value overrides its settings):
-  prep       decode, lighting, contrast, ink     keypoints  endpoints, junctions, corners (CNN)
-  field      PolyVector frame field              graph      streamlines, cross-sections, clean-up
-  topology   key vertices, candidate paths       flow       PolyVector flow of every path
-  select     MIP choice of curves                export     SVG + JSON (export.bezier=true: Béziers)
+  prep            decode, lighting, contrast, ink
+  keypoints       endpoints, junctions, corners (CNN)
+  keypoint_edits  a user's corrections of the keypoints (<stem>.keypoints.json)
+  field           PolyVector frame field
+  extension       the field beyond the band, for the flow
+  graph           streamlines, cross-sections, clean-up
+  topology        key vertices, candidate paths
+  flow            PolyVector flow of every path
+  select          MIP choice of curves
+  export          SVG + JSON (export.bezier=true: Béziers)
 
 Examples:
   polyvec drawing.png                          one image -> out/drawing.svg
@@ -593,7 +599,10 @@ def main() -> None:
     """Console entry point; exits 1 when any image failed, 2 on a usage error, 130 on Ctrl-C."""
     quiet_full_collections()   # before the stages' imports and tasks, which run in this process
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
-        print(HELP)
+        try:
+            print(HELP, flush=True)
+        except BrokenPipeError:   # `polyvec --help | head`: the reader has what it wanted
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         sys.exit(0)
     _EXIT.console(_app, single=(_job, "config"))
 

@@ -3,9 +3,11 @@
 The DAG of one image (DESIGN.md)::
 
     prep ─┬─► keypoints ─► keypoint_edits ─┐
-          └─► field ─► graph ─► topology ◄──┘
-                         │         │
-                         └──────► flow ─► select ─► export
+          └─► field ─┬─► graph ─► topology ◄┘
+                     │     │         │
+                     └─► extension ─► flow ─► select ─► export
+
+(the graph's arrow goes to the flow, not to the extension).
 """
 
 from __future__ import annotations
@@ -67,11 +69,12 @@ STAGES: tuple[StageSpec, ...] = (
     StageSpec("keypoints", "stages.keypoints", ("prep",), "zarr: 4 heatmaps; JSON: typed points"),
     StageSpec("keypoint_edits", "stages.keypoint_edits", ("keypoints",),
               "zarr: edited points, types, scores; JSON: typed points and the edit log"),
-    StageSpec("field", "stages.field", ("prep",), "zarr: c0, c2, roots, singular cells, extension"),
+    StageSpec("field", "stages.field", ("prep",), "zarr: c0, c2, roots, singular cells, smart weights"),
+    StageSpec("extension", "stages.extension", ("prep", "field"), "zarr: the field extended beyond the band"),
     StageSpec("graph", "stages.graph", ("prep", "field"), "zarr: vertices, edges, streamlines"),
     StageSpec("topology", "stages.topology", ("prep", "field", "graph", "keypoint_edits"),
               "JSON: candidate paths; zarr: pixel coverage"),
-    StageSpec("flow", "stages.flow", ("prep", "field", "graph", "topology"), "zarr: flowed polylines; JSON: energies"),
+    StageSpec("flow", "stages.flow", ("prep", "extension", "graph", "topology"), "zarr: flowed polylines; JSON: energies"),
     StageSpec("select", "stages.select", ("prep", "topology", "flow"), "JSON: chosen curves"),
     StageSpec("export", "stages.export", ("prep", "topology", "flow", "select"), "SVG + curves JSON"),
 )

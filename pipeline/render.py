@@ -93,6 +93,11 @@ def render_artifact(store: ArtifactStore, stage: str, key: str, scale: int = 2) 
         from stages.field import render_field
 
         return render_field(grey, art["roots"], prep["mask"], scale=scale)
+    if stage == "extension":   # the directions carried into the ring (tinted: band and ring)
+        from stages.field import polyvector_roots, render_field
+
+        c0, c2 = np.asarray(art["c0_ext"]), np.asarray(art["c2_ext"])
+        return render_field(grey, polyvector_roots(c0, c2), (c0 != 0) | (c2 != 0), scale=scale)
     if stage == "keypoints":
         from stages.keypoints import render_keypoints
 

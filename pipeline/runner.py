@@ -272,11 +272,12 @@ def run_per_item(module, task: Task, store: ArtifactStore, inputs: dict) -> tupl
     plan = module.plan_items(dict(task.config), **inputs)
     keys = item_keys(task.stage, task.version, plan.context, {i: task.inputs[i] for i in module.ITEM_INPUTS},
                      plan.items)
-    results = [store.load_item(task.stage, k) for k in keys]
+    results = store.load_items(task.stage, task.image_key, keys)
     missing = [i for i, r in enumerate(results) if r is None]
     if missing:
-        for i, r in zip(missing, module.run_items(plan, missing)):
-            store.save_item(task.stage, keys[i], r)
+        fresh = module.run_items(plan, missing)
+        store.save_items(task.stage, task.image_key, [(keys[i], r) for i, r in zip(missing, fresh)])
+        for i, r in zip(missing, fresh):
             results[i] = r
     return module.assemble(plan, results), (len(keys) - len(missing), len(keys))
 
@@ -555,7 +556,7 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
                     check_stage(spec, code=True)
             if sync:
                 _run_sync(pending, store.url, batch, report,
-                          in_child=("keypoints",) if runtime["keypoints_process"] else ())
+                          in_child=CHILD_STAGES if runtime["keypoints_process"] else ())
             else:
                 client = get_client(runtime)
                 if runtime["scheduler_address"]:
@@ -599,6 +600,11 @@ def _prep_pixels(store_url: str, key: str) -> int | None:
         return None
 
 
+#: Stages an in-process run computes in its child process (``runtime.keypoints_process``): the
+#: keypoints beside the field and graph, then the field's extension, which only the flow reads —
+#: off the field → graph path of this process (stages/DECISIONS.md, engine).
+CHILD_STAGES = ("keypoints", "extension")
+
 #: Tasks the in-process scheduler runs at once (threads): an image's keypoints beside its field and
 #: graph, which need only prep (torch, scipy and the graph kernels release the GIL in their work).
 SYNC_THREADS = 2
@@ -609,7 +615,7 @@ SYNC_PARALLEL_MAX_PIXELS = 4_000_000
 
 
 class _ChildTasks:
-    """A child process that runs the in-process scheduler's tasks of some stages (the keypoints).
+    """A child process that runs the in-process scheduler's tasks of some stages (:data:`CHILD_STAGES`).
 
     Why: beside a keypoints thread (torch's import, then the network) the field and graph of the
     same drawing took 1.5× their time alone (the GIL and the interpreter between numpy calls), beside
@@ -721,7 +727,11 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ())
     try:
         while waiting or running:
             startable = [(i, t) for i, t in waiting if ready(i, t)]
-            for i, t in startable[:max(0, SYNC_THREADS - len(running))]:
+            for i, t in startable:
+                if len(running) >= SYNC_THREADS:
+                    break
+                if t.stage in in_child and any(o.stage in in_child for _, o in running.values()):
+                    continue   # the child runs one task at a time: a thread waiting on it would idle
                 if running and not (apart(t) or all(parallel(j) for j, _ in [*running.values(), (i, t)])):
                     break
                 waiting.remove((i, t))

@@ -23,6 +23,7 @@ from pipeline.bench import BenchConfig
 from pipeline.runner import RuntimeConfig, stage_config
 from stages.config import from_section
 from stages.export import ExportConfig
+from stages.extension import ExtensionConfig
 from stages.field import FieldConfig
 from stages.flow import FlowConfig
 from stages.graph import GraphConfig
@@ -36,7 +37,7 @@ from stages.topology import TopologyConfig
 #: config group → the dataclass that mirrors it
 SCHEMAS: dict[str, type] = {
     "prep": PrepConfig, "keypoints": KeypointsConfig, "keypoint_edits": KeypointEditsConfig,
-    "field": FieldConfig, "graph": GraphConfig, "topology": TopologyConfig, "flow": FlowConfig,
+    "field": FieldConfig, "extension": ExtensionConfig, "graph": GraphConfig, "topology": TopologyConfig, "flow": FlowConfig,
     "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig, "bench": BenchConfig,
     "train": TrainConfig,
 }

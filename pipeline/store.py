@@ -5,8 +5,9 @@ Layout under the store root::
     <stage>/<key[:2]>/<key>/arrays.zarr     one zarr v3 group, one array per artifact array
     <stage>/<key[:2]>/<key>/data.json       the artifact's small structured data
     <stage>/<key[:2]>/<key>/manifest.json   stage, version, config, inputs, timings, library versions
-    .items/<stage>/<key[:2]>/<key>.item     per-item results of a per-item stage (the flow's paths),
-                                            reused across artifacts (:mod:`pipeline.runner`)
+    .items/<stage>/<image key>/<uuid>.pack  per-item results of a per-item stage (the flow's paths),
+                                            one pack per computation, reused across artifacts
+                                            (:mod:`pipeline.runner`)
     .tmp/<uuid>/                            artifacts being written
 
 An artifact is written completely into ``.tmp/<uuid>`` and then renamed into place. A rename of a
@@ -14,10 +15,12 @@ directory is atomic on a local file system, so a reader either sees the whole ar
 run killed half-way (Ctrl-C, ``kill -9``) leaves only an orphan under ``.tmp`` that is never read and
 is swept at the next run. On an fsspec URL (``memory://``, ``s3://`` …) the manifest is written last
 and an artifact only counts as present when its manifest is, which gives the same guarantee for
-readers that go through this class. A per-item result is one small file (its arrays' names, dtypes and
-shapes as JSON, their bytes, and a BLAKE2b digest of all that), written to ``.tmp`` and renamed the
-same way; one that is missing or unreadable (truncated, corrupted: the digest) is simply absent, and
-the engine computes the item again.
+readers that go through this class. A per-item result is a few bytes (its arrays' names, dtypes and
+shapes as JSON, their bytes, and a BLAKE2b digest of all that); the results one task computed are
+written together, as one *pack* (an index of item keys and sizes, then the results), to ``.tmp`` and
+renamed the same way — one file, not one per item: 333 small files took 0.1–0.3 s of the elephant's
+default run on this project's machine. A result that is missing or unreadable (truncated,
+corrupted: the digest) is simply absent, and the engine computes the item again.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from stages.artifact import Artifact
 MANIFEST = "manifest.json"
 ITEMS = ".items"
 ITEM_MAGIC = b"polyvec-item 1\n"
+PACK_MAGIC = b"polyvec-items 1\n"
 DATA = "data.json"
 ARRAYS = "arrays.zarr"
 
@@ -124,6 +128,40 @@ def decode_item(raw: bytes) -> dict[str, np.ndarray]:
         a = np.frombuffer(body, dtype=dtype, count=int(np.prod(shape)), offset=end).reshape(shape)
         end += a.nbytes
         out[name] = a
+    return out
+
+
+def encode_pack(items: list[tuple[str, dict[str, np.ndarray]]]) -> bytes:
+    """Per-item results as one pack: magic, index length, JSON index ``[[key, size], ...]``, the
+    results (:func:`encode_item`, each with its own digest) one after the other."""
+    blobs = [encode_item(arrays) for _, arrays in items]
+    index = json.dumps([[key, len(b)] for (key, _), b in zip(items, blobs)]).encode()
+    return b"".join([PACK_MAGIC, len(index).to_bytes(4, "little"), index, *blobs])
+
+
+def decode_pack(raw: bytes, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]:
+    """The intact results of ``wanted`` keys in a pack; a torn or corrupted result is left out, an
+    unreadable index gives nothing."""
+    at = len(PACK_MAGIC) + 4
+    if not raw.startswith(PACK_MAGIC) or len(raw) < at:
+        return {}
+    end = at + int.from_bytes(raw[len(PACK_MAGIC):at], "little")
+    try:
+        index = json.loads(raw[at:end])
+    except ValueError:
+        return {}
+    out = {}
+    for entry in index if isinstance(index, list) else ():
+        try:
+            key, size = str(entry[0]), int(entry[1])
+        except (TypeError, ValueError, IndexError):
+            return out
+        if key in wanted and key not in out:
+            try:
+                out[key] = decode_item(raw[end:end + size])
+            except (ValueError, TypeError):
+                pass
+        end += size
     return out
 
 
@@ -221,30 +259,30 @@ class ArtifactStore:
         protocol = self.fs.protocol if isinstance(self.fs.protocol, str) else self.fs.protocol[0]
         return FsspecStore.from_url(f"{protocol}://{path}", read_only=read_only)
 
-    def item_path(self, stage: str, key: str) -> str:
-        """File (or URL path) of one per-item result."""
-        return self._join(ITEMS, stage, key[:2], f"{key}.item")
-
-    def save_item(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> None:
-        """Write one per-item result atomically (a temporary file renamed into place).
+    def save_items(self, stage: str, scope: str, items: list[tuple[str, dict[str, np.ndarray]]]) -> None:
+        """Write per-item results as one pack, atomically (a temporary file renamed into place).
 
         Parameters
         ----------
         stage : str
-        key : str
-            The item's key (:func:`item_keys`).
-        arrays : dict of str to numpy.ndarray
+        scope : str
+            Where the pack is filed (the image's key): :meth:`load_items` reads the packs of one scope.
+        items : list of (str, dict of str to numpy.ndarray)
+            Each result's key (:func:`item_keys`) and arrays.
         """
-        raw = encode_item(arrays)
-        final = self.item_path(stage, key)
-        self.fs.makedirs(self._join(ITEMS, stage, key[:2]), exist_ok=True)
+        if not items:
+            return
+        raw = encode_pack(items)
+        folder = self._join(ITEMS, stage, scope)
+        final = self._join(ITEMS, stage, scope, f"{uuid.uuid4().hex}.pack")
+        self.fs.makedirs(folder, exist_ok=True)
         if not self.local:
-            # fsspec back-ends write an object in one piece; a torn one fails the digest anyway.
+            # fsspec back-ends write an object in one piece; a torn one fails the digests anyway.
             with self.fs.open(final, "wb") as f:
                 f.write(raw)
             return
         self.fs.makedirs(self._join(".tmp"), exist_ok=True)
-        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.item")
+        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.pack")
         try:
             with open(tmp, "wb") as f:
                 f.write(raw)
@@ -253,13 +291,24 @@ class ArtifactStore:
             if os.path.exists(tmp):
                 os.remove(tmp)
 
-    def load_item(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
-        """One per-item result, or None when it is missing or unreadable (it is then computed again)."""
+    def load_items(self, stage: str, scope: str, keys: list[str]) -> list[dict[str, np.ndarray] | None]:
+        """The stored results of ``keys`` (None where missing or unreadable: computed again)."""
+        wanted = set(keys)
+        found: dict[str, dict[str, np.ndarray]] = {}
         try:
-            with self.fs.open(self.item_path(stage, key), "rb") as f:
-                return decode_item(f.read())
-        except (OSError, ValueError, TypeError):
-            return None
+            packs = sorted(self.fs.ls(self._join(ITEMS, stage, scope), detail=False))
+        except (FileNotFoundError, NotADirectoryError):
+            packs = []
+        for pack in packs:
+            if not str(pack).endswith(".pack") or not wanted - found.keys():
+                continue
+            try:
+                with self.fs.open(pack, "rb") as f:
+                    raw = f.read()
+            except OSError:
+                continue
+            found.update(decode_pack(raw, wanted - found.keys()))
+        return [found.get(k) for k in keys]
 
     # -- reading -------------------------------------------------------------------------------
     def load(self, stage: str, key: str) -> Artifact:
@@ -313,7 +362,7 @@ class ArtifactStore:
                 if now - entry.stat().st_mtime > older_than_s:
                     if entry.is_dir(follow_symlinks=False):
                         shutil.rmtree(entry.path, ignore_errors=True)
-                    else:  # a per-item result being written
+                    else:  # a pack of per-item results being written
                         os.remove(entry.path)
                     n += 1
             except OSError:

@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "2"  # 2: the solve in real form (same system; the coefficients move in their last bits)
+STAGE_VERSION = "3"  # 2: the solve in real form; 3: the extension moved to its own stage, smart weights kept
 
 __all__ = [
     "FieldConfig", "STAGE_VERSION", "run", "compute_field", "image_tangents", "coherence_weights",
     "smart_weights", "polyvector_roots", "root_matching", "singular_cells", "singular_pixels",
-    "extend_field", "render_field",
+    "render_field",
 ]
 
 
@@ -31,14 +31,12 @@ class FieldConfig:
     cg_max_iterations: int
     warm_start: bool
     max_singularity_iterations: int
-    extension_radius: int
-    extension_scale: float
     tie_tolerance: float
     tie_sigma: float
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.field.stage": ("run", "compute_field", "image_tangents", "coherence_weights", "smart_weights",
-                           "polyvector_roots", "root_matching", "singular_cells", "singular_pixels", "extend_field"),
+                           "polyvector_roots", "root_matching", "singular_cells", "singular_pixels"),
     "stages.field.field_picture": ("render_field",),
 })

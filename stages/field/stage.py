@@ -39,9 +39,8 @@ Steps (in the order of :func:`compute_field`):
    frame {x, y} is *one* polynomial (c0 = −1, c2 = 0) for a horizontal and a vertical stroke, so
    "larger modulus" alone would put the normal first on one of them (a frequent case: see
    stages/DECISIONS.md).
-6. **Extension for the flow.**  The band is dilated by a disk of radius ``extension_radius``; on the
-   ring only the smart-weighted Laplacian is solved with the band values held fixed; ring values are
-   then multiplied by ``extension_scale`` × (L1 distance to the band).  0 beyond the ring.
+6. **Smart weights** ``s`` of step 2's coherence weights (before the singularity loop zeroes any) are
+   kept in the artifact: the ``extension`` stage extends the field beyond the band with them.
 
 Choices made on purpose (vs. the references; measurements in stages/DECISIONS.md)
 -------------------------------------------
@@ -439,7 +438,7 @@ def _field_operator(k: sp.csr_matrix, off: np.ndarray):
 
 
 def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
-    """PolyVector field on the band, the singularity loop and the extension.
+    """PolyVector field on the band and the singularity loop.
 
     Parameters
     ----------
@@ -452,7 +451,8 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
     Returns
     -------
     dict
-        ``c0, c2, roots, singular, c0_ext, c2_ext`` (complex128 / bool arrays) and ``stats`` (dict).
+        ``c0, c2, roots`` (complex128), ``singular`` (bool), ``smart_weights`` (float64) arrays and
+        ``stats`` (dict).
     """
     t_start = time.perf_counter()
     h, w = mask.shape
@@ -501,65 +501,8 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
         roots[mask] = polyvector_roots(xc[:, 0], xc[:, 1])
         stats["tie_swapped"] = _order_ties(roots, mask, tau, gmag, cfg.tie_tolerance, cfg.tie_sigma)
     stats["solve_seconds"] = time.perf_counter() - t_start
-    t_ext = time.perf_counter()
-    c0_ext, c2_ext, ext_stats = extend_field(c0, c2, mask, smart_weights(w0), cfg)
-    stats.update(ext_stats)
-    stats["extension_seconds"] = time.perf_counter() - t_ext
-    return {"c0": c0, "c2": c2, "roots": roots, "singular": singular, "c0_ext": c0_ext,
-            "c2_ext": c2_ext, "stats": stats}
-
-
-def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,
-                 cfg: FieldConfig) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Extend the band field into a dilated ring for the flow (authors' ``scale_ff``).
-
-    The ring is ``dilate(mask, disk(extension_radius)) − mask``.  On it the smart-weighted Laplacian
-    ``L = Σ Dᵀ diag(s) D`` (over band + ring) is minimised with the band values fixed; ring values are
-    then multiplied by ``extension_scale · d₁`` with d₁ the L1 (taxicab) distance to the band, which
-    makes |p(τ)| large off the ink: a soft wall pushing flowed curves back into strokes.
-
-    Parameters
-    ----------
-    c0, c2 : numpy.ndarray
-        complex (H, W) band field (0 off the band).
-    mask : numpy.ndarray
-        bool (H, W).
-    s : numpy.ndarray
-        float (H, W) smart weights (:func:`smart_weights`).
-    cfg : FieldConfig
-
-    Returns
-    -------
-    c0_ext, c2_ext : numpy.ndarray
-        complex128 (H, W): band values on the band, scaled extension on the ring, 0 beyond.
-    stats : dict
-    """
-    r = cfg.extension_radius
-    c0_ext = np.where(mask, c0, 0).astype(np.complex128)
-    c2_ext = np.where(mask, c2, 0).astype(np.complex128)
-    if not mask.any() or r <= 0:
-        return c0_ext, c2_ext, {"extension_unknowns": 0, "extension_cg_iterations": 0}
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disk = xx * xx + yy * yy <= r * r
-    dil = ndi.binary_dilation(mask, structure=disk)
-    ring = dil & ~mask
-    index = _region_index(dil)
-    lap = _smart_laplacian(dil, index, s)
-    in_ring = ring[dil]
-    lrr = lap[in_ring][:, in_ring]
-    lrb = lap[in_ring][:, ~in_ring]
-    band_vals = _as_real(np.stack([c0[mask], c2[mask]], axis=1))
-    # Both coefficients share the real operator: one solve over their four real columns.
-    k = int(in_ring.sum())
-    rhs = -(lrb @ band_vals)
-    x, iters, _ = _conjugate_gradient(lrr.__matmul__, lrr.diagonal(), rhs, None, cfg.cg_rtol,
-                                      max(1, cfg.cg_max_iterations))
-    dist = ndi.distance_transform_cdt(~mask, metric="taxicab").astype(np.float64)
-    scale = cfg.extension_scale * dist[ring]
-    xc = x.view(np.complex128)
-    c0_ext[ring] = xc[:, 0] * scale
-    c2_ext[ring] = xc[:, 1] * scale
-    return c0_ext, c2_ext, {"extension_unknowns": 2 * k, "extension_cg_iterations": iters}
+    return {"c0": c0, "c2": c2, "roots": roots, "singular": singular, "smart_weights": smart_weights(w0),
+            "stats": stats}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -579,8 +522,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Returns
     -------
     Artifact
-        Arrays ``c0, c2, c0_ext, c2_ext`` complex64 (H, W), ``roots`` complex64 (H, W, 2),
-        ``singular`` bool (H, W); data = solver statistics.
+        Arrays ``c0, c2`` complex64 (H, W), ``roots`` complex64 (H, W, 2), ``singular`` bool (H, W),
+        ``smart_weights`` float32 (H, W); data = solver statistics.
     """
     conf = from_section(FieldConfig, cfg, "field")
     if "prep" not in inputs:
@@ -596,7 +539,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     arrays = {
         "c0": out["c0"].astype(np.complex64), "c2": out["c2"].astype(np.complex64),
         "roots": out["roots"].astype(np.complex64), "singular": out["singular"],
-        "c0_ext": out["c0_ext"].astype(np.complex64), "c2_ext": out["c2_ext"].astype(np.complex64),
+        "smart_weights": out["smart_weights"].astype(np.float32),
     }
     notes = []
     capped = sum(not c for c in out["stats"]["cg_converged"])

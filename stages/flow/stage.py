@@ -6,7 +6,7 @@ the anisotropic, position-varying length (Eq. 6a)
     E(x) = ∫_Γ ( |f(x, τ)|² + b(x) ) dl,   f(x, z) = z⁴ + c2(x) z² + c0(x),   τ = tangent,
     b(x) = max(1 − S(x), 0) + λ,            S(x) = Σ_k exp(−|x − p_k|² / 2σ_k²)          (Eq. 5)
 
-where c0, c2 is the frame field extended beyond the band (field artifact ``c0_ext``, ``c2_ext``),
+where c0, c2 is the frame field extended beyond the band (extension artifact ``c0_ext``, ``c2_ext``),
 ``p_k`` are barrier centres along the path's *initial* polyline and ``σ_k = width/6`` (3σ rule).
 Points are (x, y) in pixel units, x right, y down, origin at the top-left corner of the top-left pixel;
 positions are handled as complex numbers ``z = x + 1j*y``.
@@ -276,7 +276,7 @@ def path_energy(c0: np.ndarray, c2: np.ndarray, xy: np.ndarray, centres: np.ndar
 
 #: The paths are independent items (:class:`stages.artifact.ItemPlan`): the engine may reuse a path's
 #: stored result whenever the path, these inputs' artifacts and the effective config are unchanged.
-ITEM_INPUTS = ("field",)
+ITEM_INPUTS = ("extension",)
 ITEM_NAME = "paths"
 
 
@@ -300,7 +300,7 @@ def plan_items(cfg: dict, **inputs: Artifact) -> ItemPlan:
     ----------
     cfg : dict
         The ``flow`` config section.
-    prep, field, graph, topology : Artifact
+    prep, extension, graph, topology : Artifact
         As for :func:`run`.
 
     Returns
@@ -311,14 +311,14 @@ def plan_items(cfg: dict, **inputs: Artifact) -> ItemPlan:
         is left out), so that a path's result never mixes with one flowed under another iteration count.
     """
     params = from_section(FlowConfig, cfg, "flow")
-    for name in ("prep", "field", "topology"):
+    for name in ("prep", "extension", "topology"):
         if name not in inputs:
             raise InputError(f"flow stage needs the '{name}' artifact")
-    field, topology = inputs["field"], inputs["topology"]
-    c0 = np.asarray(field.arrays.get("c0_ext"))
-    c2 = np.asarray(field.arrays.get("c2_ext"))
+    extension, topology = inputs["extension"], inputs["topology"]
+    c0 = np.asarray(extension.arrays.get("c0_ext"))
+    c2 = np.asarray(extension.arrays.get("c2_ext"))
     if c0.ndim != 2 or c0.shape != c2.shape or min(c0.shape) < 1:
-        raise InputError(f"flow: field c0_ext/c2_ext must be equal 2-D arrays, got {c0.shape}, {c2.shape}")
+        raise InputError(f"flow: extension c0_ext/c2_ext must be equal 2-D arrays, got {c0.shape}, {c2.shape}")
     paths = topology.data.get("paths", [])
     xys, widths, interest = [], [], []
     for p in paths:
@@ -402,8 +402,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     ----------
     cfg : dict
         The ``flow`` config section (keys of :class:`FlowConfig`).
-    prep, field, graph, topology : Artifact
-        ``field`` supplies ``c0_ext``/``c2_ext``; ``topology`` the paths (``xy``, ``widths``,
+    prep, extension, graph, topology : Artifact
+        ``extension`` supplies ``c0_ext``/``c2_ext``; ``topology`` the paths (``xy``, ``widths``,
         ``interest_dist``); ``prep`` the image size.  ``graph`` is not read (widths and distances
         come with the paths).
 

@@ -48,8 +48,9 @@ _source_hash = source_hash
 
 def _cached(name: str, data: bytes, cache: Path, build):
     stages = ROOT / "stages"
-    cfgs = json.dumps([_cfg(s) for s in ("prep", "field", "graph", "topology")], sort_keys=True).encode()
-    src = _source_hash(stages / "prep", stages / "field", stages / "graph", stages / "topology").encode()
+    names = ("prep", "field", "extension", "graph", "topology")
+    cfgs = json.dumps([_cfg(s) for s in names], sort_keys=True).encode()
+    src = _source_hash(*(stages / s for s in names)).encode()
     key = hashlib.sha1(data + cfgs + src).hexdigest()[:16]
     out = cache / f"{name}-{key}.pkl"
     if out.exists():
@@ -71,7 +72,7 @@ def _keypoints_artifact(kps):
 
 
 def _real_case(name: str, cache: Path) -> dict:
-    from stages import field, graph, prep, topology
+    from stages import extension, field, graph, prep, topology
 
     if name == "example":
         img = SHARED / "authors_example" / "example.png"
@@ -91,13 +92,14 @@ def _real_case(name: str, cache: Path) -> dict:
         g = graph.run(_cfg("graph"), prep=p, field=f)
         k = _keypoints_artifact(kps)
         t = topology.run(_cfg("topology"), prep=p, field=f, graph=g, keypoints=k)
-        return {"prep": p, "field": f, "graph": g, "topology": t}
+        e = extension.run(_cfg("extension"), prep=p, field=f)
+        return {"prep": p, "extension": e, "graph": g, "topology": t}
 
     return _cached(name, data, cache, build)
 
 
 def _many_paths_case(npaths: int, cache: Path, seed: int = 0) -> dict:
-    from stages import field, prep
+    from stages import extension, field, prep
     from stages.artifact import Artifact
     from stages.synthetic import Drawing, render
 
@@ -141,7 +143,8 @@ def _many_paths_case(npaths: int, cache: Path, seed: int = 0) -> dict:
 
         flat, off = pack_ragged(cov, np.int32)
         t = Artifact(arrays={"coverage": flat, "coverage_offsets": off}, data={"paths": paths, "key_vertices": []})
-        return {"prep": p, "field": f, "graph": Artifact(), "topology": t}
+        e = extension.run(_cfg("extension"), prep=p, field=f)
+        return {"prep": p, "extension": e, "graph": Artifact(), "topology": t}
 
     return _cached(f"many-paths-{npaths}-{seed}", data, cache, build)
 
@@ -174,7 +177,7 @@ def _bench(name: str, arts: dict, repeat: int, render: Path | None) -> dict:
     from stages import export, flow, select
 
     fcfg, scfg, ecfg = _cfg("flow"), _cfg("select"), _cfg("export")
-    ins = {k: arts[k] for k in ("prep", "field", "graph", "topology")}
+    ins = {k: arts[k] for k in ("prep", "extension", "graph", "topology")}
     warm = dict(fcfg, iterations=1)
     flow.run(warm, **ins)                                  # load the compiled kernel
     best, cpu = np.inf, np.inf

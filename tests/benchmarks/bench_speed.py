@@ -41,7 +41,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared" / "data" / "drawings"
 STAND_IN = SHARED / "scanned" / "elephant.png"
-STAGES = ("prep", "keypoints", "keypoint_edits", "field", "graph", "topology", "flow", "select", "export")
+STAGES = ("prep", "keypoints", "keypoint_edits", "field", "extension", "graph", "topology", "flow", "select", "export")
 
 
 def polyvec(inputs: list[str], out: str, store: str, *overrides: str, env: dict | None = None) -> dict:

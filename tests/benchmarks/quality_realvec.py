@@ -48,11 +48,12 @@ DATA = SHARED / "realvec_dev"
 CACHE = Path(os.environ.get("POLYVEC_QUALITY_CACHE", "/tmp/polyvec-quality"))
 sys.path.insert(0, str(ROOT))
 
-STAGES = ("prep", "field", "graph", "keypoints", "topology", "flow", "select", "export")
-INPUTS = {"prep": (), "field": ("prep",), "graph": ("prep", "field"), "keypoints": ("prep",),
-          "topology": ("prep", "field", "graph", "keypoints"), "flow": ("prep", "field", "graph", "topology"),
+STAGES = ("prep", "field", "extension", "graph", "keypoints", "topology", "flow", "select", "export")
+INPUTS = {"prep": (), "field": ("prep",), "extension": ("prep", "field"), "graph": ("prep", "field"),
+          "keypoints": ("prep",), "topology": ("prep", "field", "graph", "keypoints"),
+          "flow": ("prep", "extension", "graph", "topology"),
           "select": ("prep", "topology", "flow"), "export": ("prep", "topology", "flow", "select")}
-SOURCES = {"prep": ["stages/prep"], "field": ["stages/field"], "graph": ["stages/graph"],
+SOURCES = {"prep": ["stages/prep"], "field": ["stages/field"], "extension": ["stages/extension"], "graph": ["stages/graph"],
            "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow"],
            "select": ["stages/select"], "export": ["stages/export"]}
 KP_CODES = {"endpoints": 1, "junctions": 3, "corners": 5}

@@ -283,27 +283,34 @@ def test_a_keypoint_edit_reruns_the_flow_on_the_changed_paths_only(tmp_path, com
 
 
 def test_a_corrupted_or_missing_stored_path_is_flowed_again(tmp_path, compose_cfg):
+    """The paths one flow computed are stored as one pack; a result in it that is corrupted (its
+    digest) or torn (a truncated pack) is flowed again, the rest reused, and the new results stored."""
+    import json
     import shutil
 
-    from pipeline.store import ArtifactStore
+    from pipeline.store import PACK_MAGIC, ArtifactStore
 
     img = _example(tmp_path / "in")
     cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=flow")
     store = ArtifactStore(tmp_path / "store")
     first = run_batch([img], cfg).results[str(img)]["flow"]
     reference = store.load("flow", first.key)
-    items = sorted((tmp_path / "store" / ".items" / "flow").rglob("*.item"))
-    assert len(items) == first.items[1]
-    items[0].write_bytes(items[0].read_bytes()[:100])                    # truncated
-    raw = bytearray(items[1].read_bytes())
-    raw[len(raw) // 2] ^= 0xFF                                           # one flipped byte (the digest)
-    items[1].write_bytes(bytes(raw))
-    items[2].unlink()                                                    # missing
+    packs = sorted((tmp_path / "store" / ".items" / "flow").rglob("*.pack"))
+    assert len(packs) == 1                                               # one file, not one per path
+    raw = bytearray(packs[0].read_bytes())
+    at = len(PACK_MAGIC) + 4
+    end = at + int.from_bytes(raw[len(PACK_MAGIC):at], "little")
+    index = json.loads(raw[at:end])
+    assert len(index) == first.items[1]
+    raw[end + index[0][1] + index[1][1] // 2] ^= 0xFF                    # one flipped byte in the second result
+    packs[0].write_bytes(bytes(raw[:-10]))                               # and the last one torn
     shutil.rmtree(store.path_for("flow", first.key))
     again = run_batch([img], cfg).results[str(img)]["flow"]
-    assert again.status == "computed" and again.items == (first.items[1] - 3, first.items[1])
+    assert again.status == "computed" and again.items == (first.items[1] - 2, first.items[1])
     _same_artifact(store.load("flow", again.key), reference)
-    assert all(store.load_item("flow", p.stem) is not None for p in items[:3])   # written again
+    scope = packs[0].parent.name
+    assert all(r is not None for r in store.load_items("flow", scope, [index[1][0], index[-1][0]]))  # written again
+    assert len(sorted((tmp_path / "store" / ".items" / "flow").rglob("*.pack"))) == 2
 
 
 def test_stored_paths_are_not_reused_under_another_iteration_count(tmp_path, compose_cfg):
@@ -448,10 +455,59 @@ def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monk
     assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
 
 
+def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monkeypatch):
+    """The extension waits for the keypoints in the child; the graph, ready at the same moment, starts
+    at once on this process's free thread instead of queueing behind a thread that waits on the child."""
+    import threading
+    import time
+
+    from pipeline import runner
+    from pipeline.registry import STAGES
+
+    log, lock = [], threading.Lock()
+    cost = {"keypoints": 0.4}
+
+    def logged(task):
+        with lock:
+            log.append(("start", task.stage, time.perf_counter()))
+        time.sleep(cost.get(task.stage, 0.05))
+        with lock:
+            log.append(("end", task.stage, time.perf_counter()))
+        return runner.TaskResult(task.image, task.stage, task.key, "computed")
+
+    class FakeChild:   # the child's interface, run on the calling thread
+        def __init__(self, stages):
+            self.busy = threading.Lock()
+
+        def run(self, task, store_url, upstream):
+            with self.busy:
+                return logged(task)
+
+        def close(self, kill=False):
+            pass
+
+        def join(self, timeout_s=5.0):
+            pass
+
+    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
+    monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
+    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: 700 * 700)
+    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+    batch = runner.BatchResult(stages=[s.name for s in STAGES])
+    batch.results["a.png"] = {}
+    runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=runner.CHILD_STAGES)
+    when = {(kind, stage): t for kind, stage, t in log}
+    assert set(runner.CHILD_STAGES) == {"keypoints", "extension"}
+    assert when[("start", "extension")] >= when[("end", "keypoints")]
+    assert when[("start", "graph")] < when[("end", "keypoints")]     # not queued behind the extension
+    assert when[("start", "graph")] < when[("start", "extension")]
+    assert all(r.status == "computed" for r in batch.results["a.png"].values())
+
+
 def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg):
-    """``runtime.keypoints_process``: an in-process run computes the keypoints in a child process
-    (beside the field and graph on this process's threads, free of the GIL) with the same artifact;
-    the child is gone when the run returns."""
+    """``runtime.keypoints_process``: an in-process run computes the keypoints, then the field's
+    extension, in a child process (beside the field and graph on this process's threads, free of the
+    GIL) with the same artifacts; the child is gone when the run returns."""
     import json
     import multiprocessing
 
@@ -462,7 +518,7 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
     pids, keys = {}, {}
     for flag in ("true", "false"):
         store = tmp_path / f"store-{flag}"
-        batch = run_batch([image], compose_cfg(f"store.path={store}", "runtime.cluster=sync", "runtime.until=keypoint_edits",
+        batch = run_batch([image], compose_cfg(f"store.path={store}", "runtime.cluster=sync",
                                                f"runtime.keypoints_process={flag}"))
         assert all(r.status == "computed" for r in batch.results[str(image)].values())
         keys[flag] = batch.results[str(image)]["keypoints"].key
@@ -470,7 +526,9 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
         pids[flag] = {stage: m["pid"] for stage, m in manifests.items()}
         assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
     assert pids["true"]["keypoints"] != os.getpid() and pids["true"]["prep"] == os.getpid()
-    assert pids["false"]["keypoints"] == os.getpid()
+    # the field's extension (only the flow reads it) runs in the same child, after the keypoints
+    assert pids["true"]["extension"] == pids["true"]["keypoints"] and pids["true"]["graph"] == os.getpid()
+    assert pids["false"]["keypoints"] == pids["false"]["extension"] == os.getpid()
     assert keys["true"] == keys["false"]
     from pipeline.store import ArtifactStore
     a = ArtifactStore(str(tmp_path / "store-true")).load("keypoints", keys["true"])

@@ -72,7 +72,8 @@ def test_page_has_every_layer_and_stays_small(work):
     assert urls and all(u.startswith("data:image/png;base64,") for u in urls), urls
     assert page.stat().st_size < 1_000_000
     # the side panel: every stage with its key and seconds, the counts
-    for stage in ("prep", "keypoints", "keypoint_edits", "field", "graph", "topology", "flow", "select", "export"):
+    for stage in ("prep", "keypoints", "keypoint_edits", "field", "extension", "graph", "topology", "flow", "select",
+                  "export"):
         assert f"<tr><td>{stage}</td>" in text
     assert '"keypoints"' in text and "curves" in text
 

@@ -95,3 +95,30 @@ def test_ragged_round_trip():
     assert off.tolist() == [0, 3, 3, 5]
     for a, b in zip(parts, unpack_ragged(flat, off)):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("url", ["local", "memory://polyvec-test-items"])
+def test_per_item_results_round_trip_as_packs(tmp_path, url):
+    """Results are written one pack per call and read back by key from every pack of their scope;
+    a result whose bytes are corrupted or torn, or a pack that is not one, reads as missing."""
+    from pipeline.store import decode_pack, encode_pack
+
+    store = ArtifactStore(tmp_path / "s" if url == "local" else url)
+    a = {"curve": np.arange(6.0).reshape(3, 2), "energy": np.float64(2.5), "failed": np.int8(0)}
+    b = {"curve": np.zeros((0, 2)), "energy": np.float64(1.0), "failed": np.int8(1)}
+    store.save_items("flow", "img1", [("ka", a)])
+    store.save_items("flow", "img1", [("kb", b)])
+    store.save_items("flow", "img2", [("kc", a)])
+    got = store.load_items("flow", "img1", ["kb", "kc", "ka"])
+    assert got[1] is None                                    # another image's pack is not read
+    assert np.array_equal(got[2]["curve"], a["curve"]) and got[2]["energy"] == 2.5 and got[2]["energy"].shape == ()
+    assert got[0]["curve"].shape == (0, 2) and int(got[0]["failed"]) == 1
+    assert store.load_items("flow", "nothing-here", ["ka"]) == [None]
+    raw = encode_pack([("ka", a), ("kb", b)])
+    assert set(decode_pack(raw, {"ka", "kb"})) == {"ka", "kb"}
+    assert set(decode_pack(raw[:-3], {"ka", "kb"})) == {"ka"}            # the last result torn
+    flipped = bytearray(raw)
+    flipped[-40] ^= 1
+    assert set(decode_pack(bytes(flipped), {"ka", "kb"})) == {"ka"}      # its digest
+    assert decode_pack(b"not a pack at all", {"ka"}) == {}
+    assert decode_pack(raw[:len(raw) // 50], {"ka"}) == {}               # the index itself torn

@@ -33,7 +33,7 @@ f = field_run(cfg("field"), prep=p)
 g = graph.run(cfg("graph"), prep=p, field=f)
 xy = np.asarray(g["vertex_xy"], np.float64)[:6]
 params = from_section(FlowConfig, cfg("flow"), "flow")
-polyvector_flow(np.asarray(f["c0_ext"]), np.asarray(f["c2_ext"]), [xy], [np.full(len(xy), 3.0)],
+polyvector_flow(np.asarray(f["c0"]), np.asarray(f["c2"]), [xy], [np.full(len(xy), 3.0)],
                 [np.arange(len(xy), dtype=np.float64)], params)
 import stages.topology.stage as topology
 from pipeline.registry import BY_NAME

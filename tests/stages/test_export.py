@@ -189,17 +189,18 @@ def test_run_joins_and_lists_the_parts():
 # ---------------------------------------------------------------------------------------------
 
 def _vectorise(drawing):
-    from stages import field, flow, graph, prep, select, topology
+    from stages import extension, field, flow, graph, prep, select, topology
     from synthetic_graph import synthetic_inputs
 
     conf = {n: yaml.safe_load((ROOT / "conf" / n / "default.yaml").read_text())
-            for n in ("prep", "field", "graph", "topology", "flow", "select")}
+            for n in ("prep", "field", "extension", "graph", "topology", "flow", "select")}
     p = prep.run(conf["prep"], image_bytes=drawing.png_bytes(), image_name="synthetic.png")
     f = field.run(conf["field"], prep=p)
     g = graph.run(conf["graph"], prep=p, field=f)
     k = synthetic_inputs(drawing)["keypoints"]
     t = topology.run(conf["topology"], prep=p, field=f, graph=g, keypoints=k)
-    fl = flow.run(conf["flow"], prep=p, field=f, graph=g, topology=t)
+    e = extension.run(conf["extension"], prep=p, field=f)
+    fl = flow.run(conf["flow"], prep=p, extension=e, graph=g, topology=t)
     s = select.run(conf["select"], prep=p, topology=t, flow=fl)
     return [np.asarray(c["points"]) for c in export.run(CFG, prep=p, topology=t, flow=fl, select=s).data["curves"]]
 

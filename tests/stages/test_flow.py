@@ -3,7 +3,7 @@
 The analytic field of a drawing: on the band of one stroke with unit tangent u, the cross field
 p(z) = (z² − u²)(z² − (iu)²) (what the field stage's orthogonal regulariser produces); where two
 strokes cross, p(z) = (z² − u²)(z² − v²) with their two tangents, so c2 = −(u² + v²), c0 = u²v².
-Beyond the band it is extended like the field stage does (× 2·L1 distance in a 5 px ring, 0 beyond).
+Beyond the band it is extended like the extension stage does (× 2·L1 distance in a 5 px ring, 0 beyond).
 """
 
 from __future__ import annotations
@@ -289,9 +289,9 @@ def test_a_subset_of_the_paths_flows_bit_identically_to_all_of_them():
         for name in ("energies", "energies_initial", "resamples", "rejected", "failed"):
             assert getattr(part, name)[j] == getattr(full, name)[i], name
     # The stage's per-item entry points give run's artifact, byte for byte, from items flowed apart.
-    field = Artifact(arrays={"c0_ext": c0, "c2_ext": c2})
+    extension = Artifact(arrays={"c0_ext": c0, "c2_ext": c2})
     topo = _topology_artifact(paths[:-1])
-    inputs = dict(prep=Artifact(data={"height": 64, "width": 64}), field=field, graph=Artifact(), topology=topo)
+    inputs = dict(prep=Artifact(data={"height": 64, "width": 64}), extension=extension, graph=Artifact(), topology=topo)
     cfg = dict(CFG, iterations=120)
     whole = flow.run(cfg, **inputs)
     plan = flow.plan_items(cfg, **inputs)
@@ -377,7 +377,7 @@ def test_run_follows_the_artifact_contract():
     c0, c2, mask = analytic_field(d)
     paths = [noisy_path(*d.strokes[k], noise=0.3, seed=k)[0] for k in range(2)]
     art = flow.run(CFG, prep=Artifact(arrays={"mask": mask}, data={"height": 64, "width": 64}),
-                   field=Artifact(arrays={"c0_ext": c0.astype(np.complex64), "c2_ext": c2.astype(np.complex64)}),
+                   extension=Artifact(arrays={"c0_ext": c0.astype(np.complex64), "c2_ext": c2.astype(np.complex64)}),
                    graph=Artifact(), topology=_topology_artifact(paths))
     curves = unpack_ragged(art["curve_xy"], art["curve_xy_offsets"])
     assert art["curve_xy"].dtype == np.float64 and art["curve_xy"].shape[1] == 2
@@ -389,19 +389,19 @@ def test_run_follows_the_artifact_contract():
 
 
 def test_run_with_no_paths_and_bad_input():
-    field = Artifact(arrays={"c0_ext": np.zeros((8, 8), np.complex64), "c2_ext": np.zeros((8, 8), np.complex64)})
+    extension = Artifact(arrays={"c0_ext": np.zeros((8, 8), np.complex64), "c2_ext": np.zeros((8, 8), np.complex64)})
     prep = Artifact(data={"height": 8, "width": 8})
-    art = flow.run(CFG, prep=prep, field=field, graph=Artifact(), topology=Artifact(data={"paths": []}))
+    art = flow.run(CFG, prep=prep, extension=extension, graph=Artifact(), topology=Artifact(data={"paths": []}))
     assert len(art["curve_xy_offsets"]) == 1 and art.data["energies"] == []
     bad = _topology_artifact([[[1, 1], [5, 5]]])
     bad.data["paths"][0]["widths"] = [3.0]
     with pytest.raises(InputError):
-        flow.run(CFG, prep=prep, field=field, graph=Artifact(), topology=bad)
+        flow.run(CFG, prep=prep, extension=extension, graph=Artifact(), topology=bad)
     nan = _topology_artifact([[[1, 1], [np.nan, 5]]])
     with pytest.raises(InputError):
-        flow.run(CFG, prep=prep, field=field, graph=Artifact(), topology=nan)
+        flow.run(CFG, prep=prep, extension=extension, graph=Artifact(), topology=nan)
     with pytest.raises(InputError):
-        flow.run({k: v for k, v in CFG.items() if k != "lam"}, prep=prep, field=field, graph=Artifact(),
+        flow.run({k: v for k, v in CFG.items() if k != "lam"}, prep=prep, extension=extension, graph=Artifact(),
                  topology=_topology_artifact([]))
     with pytest.raises(InputError):
         flow.run(CFG, prep=prep, graph=Artifact(), topology=_topology_artifact([]))
@@ -412,6 +412,7 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
     pytest.importorskip("stages.topology")
     from synthetic_graph import synthetic_inputs
 
+    from stages import extension as extension_stage
     from stages import field as field_stage
     from stages import prep as prep_stage
     from stages import topology
@@ -420,9 +421,10 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
     cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731
     P = prep_stage.run(cfg("prep"), image_bytes=d.png_bytes(), image_name="tee")
     F = field_stage.run(cfg("field"), prep=P)
+    E = extension_stage.run(cfg("extension"), prep=P, field=F)
     syn = synthetic_inputs(d)
     T = topology.run(cfg("topology"), prep=P, field=F, graph=syn["graph"], keypoints=syn["keypoints"])
-    art = flow.run(CFG, prep=P, field=F, graph=syn["graph"], topology=T)
+    art = flow.run(CFG, prep=P, extension=E, graph=syn["graph"], topology=T)
     curves = unpack_ragged(art["curve_xy"], art["curve_xy_offsets"])
     assert len(curves) == len(T.data["paths"]) > 0
     dist = np.min([synthetic.distance_to_polyline(P["mask"].shape, s) for s in d.strokes], axis=0)
@@ -433,13 +435,14 @@ def test_flowed_topology_paths_stay_in_the_strokes_with_the_real_field():
 
 
 def _real_field(drawing):
+    from stages import extension as extension_stage
     from stages import field as field_stage
     from stages import prep as prep_stage
 
     cfg = lambda name: yaml.safe_load((ROOT / "conf" / name / "default.yaml").read_text())  # noqa: E731
     p = prep_stage.run(cfg("prep"), image_bytes=drawing.png_bytes(), image_name="synthetic")
-    f = field_stage.run(cfg("field"), prep=p)
-    return f["c0_ext"], f["c2_ext"]
+    e = extension_stage.run(cfg("extension"), prep=p, field=field_stage.run(cfg("field"), prep=p))
+    return e["c0_ext"], e["c2_ext"]
 
 
 def test_with_the_real_field_a_noisy_17_degree_path_is_centred():

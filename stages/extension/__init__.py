@@ -1,0 +1,29 @@
+"""Stage ``extension``: the PolyVector field extended beyond the narrow band, for the flow.
+
+``STAGE_VERSION`` and the config dataclass. Its code, and the docstring that describes it and its
+choices, are in :mod:`stages.extension.stage`; ``run`` and its other public names load from there when
+first used (:mod:`stages.lazy`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages.lazy import lazy_names
+
+STAGE_VERSION = "1"
+
+__all__ = ["ExtensionConfig", "STAGE_VERSION", "run", "extend_field"]
+
+
+@dataclass
+class ExtensionConfig:
+    """The ``extension`` config section (``conf/extension/default.yaml``), one field per key."""
+
+    radius: int
+    scale: float
+    cg_rtol: float
+    cg_max_iterations: int
+
+
+__getattr__, __dir__ = lazy_names(__name__, {"stages.extension.stage": ("run", "extend_field")})
