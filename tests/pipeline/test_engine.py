@@ -402,9 +402,12 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
     assert status["topology"] == status["flow"] == status["export"] == "skipped"
 
 
-def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monkeypatch):
-    """Over ``SYNC_PARALLEL_MAX_PIXELS`` this process runs a task at a time, but the keypoints child
-    (its own memory) still runs beside it: a 300-dpi A4 page took the sum of the two (42 s, 32 s now)."""
+def _logged_scheduler(monkeypatch, pixels, cost=None):
+    """The in-process scheduler with its tasks replaced by sleeps (``cost[stage]`` s, else 0.15 s) that
+    log their start and end, and a child that runs its tasks one at a time on the calling thread.
+
+    Returns ``run(in_child) -> {("start"|"end", stage): time}`` over one image of every stage.
+    """
     import threading
     import time
 
@@ -416,66 +419,12 @@ def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monk
     def logged(task):
         with lock:
             log.append(("start", task.stage, time.perf_counter()))
-        time.sleep(0.15)
+        time.sleep((cost or {}).get(task.stage, 0.15))
         with lock:
             log.append(("end", task.stage, time.perf_counter()))
         return runner.TaskResult(task.image, task.stage, task.key, "computed")
 
-    class FakeChild:   # the child's interface, run on the calling thread
-        def __init__(self, stages):
-            self.stages = stages
-
-        def run(self, task, store_url, upstream):
-            return logged(task)
-
-        def close(self, kill=False):
-            pass
-
-        def join(self, timeout_s=5.0):
-            pass
-
-    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
-    monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
-    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: runner.SYNC_PARALLEL_MAX_PIXELS + 1)
-    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
-
-    def run(in_child):
-        log.clear()
-        batch = runner.BatchResult(stages=[s.name for s in STAGES])
-        batch.results["a.png"] = {}
-        runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=in_child)
-        return {(kind, stage): t for kind, stage, t in log}
-
-    when = run(("keypoints",))
-    assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
-    # never two tasks at once in this process: each task of this process starts after the previous ended
-    mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if s.name != "keypoints")
-    assert all(b[0] >= a[1] for a, b in zip(mine, mine[1:]))
-    when = run(())   # the keypoints on a thread of this process: one task at a time, as before
-    assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
-
-
-def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monkeypatch):
-    """The extension waits for the keypoints in the child; the graph, ready at the same moment, starts
-    at once on this process's free thread instead of queueing behind a thread that waits on the child."""
-    import threading
-    import time
-
-    from pipeline import runner
-    from pipeline.registry import STAGES
-
-    log, lock = [], threading.Lock()
-    cost = {"keypoints": 0.4}
-
-    def logged(task):
-        with lock:
-            log.append(("start", task.stage, time.perf_counter()))
-        time.sleep(cost.get(task.stage, 0.05))
-        with lock:
-            log.append(("end", task.stage, time.perf_counter()))
-        return runner.TaskResult(task.image, task.stage, task.key, "computed")
-
-    class FakeChild:   # the child's interface, run on the calling thread
+    class FakeChild:   # the child's interface
         def __init__(self, stages):
             self.busy = threading.Lock()
 
@@ -491,17 +440,46 @@ def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monke
 
     monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
     monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
-    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: 700 * 700)
+    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
     tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
-    batch = runner.BatchResult(stages=[s.name for s in STAGES])
-    batch.results["a.png"] = {}
-    runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=runner.CHILD_STAGES)
-    when = {(kind, stage): t for kind, stage, t in log}
+
+    def run(in_child):
+        log.clear()
+        batch = runner.BatchResult(stages=[s.name for s in STAGES])
+        batch.results["a.png"] = {}
+        runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=in_child)
+        assert all(r.status == "computed" for r in batch.results["a.png"].values())
+        return {(kind, stage): t for kind, stage, t in log}
+
+    return run
+
+
+def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monkeypatch):
+    """Over ``SYNC_PARALLEL_MAX_PIXELS`` this process runs a task at a time, but the keypoints child
+    (its own memory) still runs beside it: a 300-dpi A4 page took the sum of the two (42 s, 32 s now)."""
+    from pipeline import runner
+    from pipeline.registry import STAGES
+
+    run = _logged_scheduler(monkeypatch, runner.SYNC_PARALLEL_MAX_PIXELS + 1)
+    when = run(runner.CHILD_STAGES)
+    assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
+    # never two tasks at once in this process: each task of this process starts after the previous ended
+    mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if s.name not in runner.CHILD_STAGES)
+    assert all(b[0] >= a[1] for a, b in zip(mine, mine[1:]))
+    when = run(())   # the keypoints on a thread of this process: one task at a time, as before
+    assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
+
+
+def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monkeypatch):
+    """The extension waits for the keypoints in the child; the graph, ready at the same moment, starts
+    at once on this process's free thread instead of queueing behind a thread that waits on the child."""
+    from pipeline import runner
+
+    when = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.4, "field": 0.05})(runner.CHILD_STAGES)
     assert set(runner.CHILD_STAGES) == {"keypoints", "extension"}
     assert when[("start", "extension")] >= when[("end", "keypoints")]
     assert when[("start", "graph")] < when[("end", "keypoints")]     # not queued behind the extension
     assert when[("start", "graph")] < when[("start", "extension")]
-    assert all(r.status == "computed" for r in batch.results["a.png"].values())
 
 
 def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg):
