@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from stages.errors import InputError
 from stages.lazy import lazy_names
 
 STAGE_VERSION = "1"
@@ -24,6 +25,10 @@ class ExtensionConfig:
     scale: float
     cg_rtol: float
     cg_max_iterations: int
+
+    def __post_init__(self) -> None:
+        if self.radius < 0 or self.scale < 0 or self.cg_rtol <= 0 or self.cg_max_iterations < 1:
+            raise InputError("extension config: need radius ≥ 0, scale ≥ 0, cg_rtol > 0, cg_max_iterations ≥ 1")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {"stages.extension.stage": ("run", "extend_field")})

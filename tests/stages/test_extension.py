@@ -91,6 +91,9 @@ def test_bad_input_is_a_clear_error():
         extension.run(CFG, prep=Artifact(arrays={"mask": np.zeros((10, 11), bool)}), field=ins["field"])
     with pytest.raises(InputError, match="radius"):
         extension.run({k: v for k, v in CFG.items() if k != "radius"}, **ins)
+    for bad in ({"radius": -1}, {"scale": -2.0}, {"cg_rtol": 0.0}, {"cg_max_iterations": 0}):
+        with pytest.raises(InputError, match="extension config"):
+            extension.run(dict(CFG, **bad), **ins)
 
 
 def test_a_capped_solve_says_so():
