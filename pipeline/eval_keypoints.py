@@ -5,7 +5,7 @@ Usage::
     python -m pipeline.eval_keypoints DIR [--weights PATH] [--ensemble [PATH ...]] [--threshold 0.5] [--min-distance 3]
                                           [--typing valence|argmax] [--type-classifier NPZ]
                                           [--precision fp32|bf16|auto] [--limit N] [--render OUT_DIR]
-                                          [--json OUT.json]
+                                          [--json OUT.json] [--crossing-angle DEG]
 
 ``DIR`` holds ``<name>.png`` drawings, each with ``<name>.json`` (the realvec_dev format: lists
 ``endpoints``, ``junctions``, ``corners`` of (x, y)) or ``<name>.pts`` (the authors' format: ``N`` then
@@ -35,11 +35,19 @@ from stages.prep import internal_scale
 _JSON_KEYS = (("endpoints", 1), ("junctions", 3), ("corners", 5))
 
 
-def load_ground_truth(png: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """Ground-truth keypoints beside ``png`` (``.json`` or ``.pts``), or None."""
+def load_ground_truth(png: Path, crossing_angle: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Ground-truth keypoints beside ``png`` (``.json`` or ``.pts``), or None.
+
+    ``crossing_angle``: instead of the case's own labels, label its ``strokes`` (and ``width``) again
+    with the training rules (:func:`stages.keypoints.training.labels.label_keypoints`, ``conf/train``
+    ``labels``) but crossings junctions from this angle (degrees): the case labels (metrics.md §4.2)
+    call crossings junctions from about 37°, the acceptance scorer from 20°.
+    """
     js = png.with_suffix(".json")
     if js.is_file():
         d = json.loads(js.read_text())
+        if crossing_angle is not None:
+            return _relabelled(d, crossing_angle, js)
         pts, types = [], []
         for key, code in _JSON_KEYS:
             for p in d.get(key, []):
@@ -52,6 +60,21 @@ def load_ground_truth(png: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
+def _relabelled(case: dict, crossing_angle: float, where: Path) -> tuple[np.ndarray, np.ndarray]:
+    from pipeline.registry import default_config
+    from stages.errors import InputError
+    from stages.keypoints.training.config import LabelRules
+    from stages.keypoints.training.labels import label_keypoints
+
+    if "strokes" not in case or "width" not in case:
+        raise InputError(f"{where.name}: --crossing-angle needs the case's vector strokes and width")
+    strokes = [np.asarray(st, np.float64).reshape(-1, 2) for st in case["strokes"]]
+    widths = np.broadcast_to(np.asarray(case["width"], np.float64), (len(strokes),))
+    rules = LabelRules(**dict(default_config("train")["labels"], crossing_min_deg=float(crossing_angle)))
+    pts, types = label_keypoints(strokes, widths, rules)
+    return np.asarray(pts, float).reshape(-1, 2), np.asarray(types, np.int8)
+
+
 def _configs(overrides: dict) -> tuple[dict, dict]:
     from pipeline.registry import default_config
 
@@ -61,8 +84,11 @@ def _configs(overrides: dict) -> tuple[dict, dict]:
 
 
 def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit: int | None = None,
-                    render_dir: Path | None = None) -> dict:
+                    render_dir: Path | None = None, crossing_angle: float | None = None) -> dict:
     """Run prep + keypoints on every drawing with ground truth in ``folder`` and score it.
+
+    ``crossing_angle``: score against labels made again from the cases' strokes with this crossing
+    angle (:func:`load_ground_truth`).
 
     Returns
     -------
@@ -78,7 +104,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     t_total = 0.0
     weights_name = None  # the stage's own name for the networks it ran (main + ensemble)
     for png in pngs:
-        gt = load_ground_truth(png)
+        gt = load_ground_truth(png, crossing_angle)
         if gt is None:
             continue
         if limit is not None and len(cases) >= limit:
@@ -122,6 +148,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         "seconds_per_case": t_total / n,
         "threshold": kp_cfg["threshold"], "min_distance": kp_cfg["min_distance"], "typing": kp_cfg["typing"],
         "test_time_views": list(kp_cfg["test_time_views"]),
+        "labels": "case" if crossing_angle is None else f"relabelled, crossings from {crossing_angle:g}°",
     }
     return {"summary": summary, "cases": cases}
 
@@ -159,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--render", type=Path, default=None, help="write overlays here")
     ap.add_argument("--json", type=Path, default=None, help="write all figures here")
+    ap.add_argument("--crossing-angle", type=float, default=None, metavar="DEG",
+                    help="score against labels made again from each case's strokes, crossings junctions from "
+                         "DEG degrees (the case labels: about 37; the acceptance scorer: 20)")
     args = ap.parse_args(argv)
     if not args.folder.exists():
         print(f"error: {args.folder} does not exist", file=sys.stderr)
@@ -171,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
                                             "min_distance": args.min_distance, "typing": args.typing,
                                             "type_classifier": args.type_classifier, "precision": args.precision,
                                             "test_time_views": args.views},
-                              args.radius, args.limit, args.render)
+                              args.radius, args.limit, args.render, args.crossing_angle)
     except InputError as exc:        # a bad setting (threshold, view, weights): one line, as polyvec says it
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -184,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         from rich.table import Table
 
         t = Table(title=f"keypoints on {args.folder} ({s['cases']} drawings, weights {s['weights']}, "
-                          f"typing {s['typing']})")
+                          f"typing {s['typing']}, labels: {s['labels']})")
         t.add_column("metric")
         t.add_column("value", justify="right")
         rows = [("detection F1, one-to-one ≤ %.0f px (pooled)" % s["radius_px"], s["f1_matched_pooled"]),

@@ -597,6 +597,34 @@ def test_eval_keypoints_cli_scores_a_folder(tmp_path):
     assert main([str(tmp_path / "missing")]) == 2
 
 
+def test_eval_keypoints_can_label_crossings_from_the_scorers_angle(tmp_path, capsys):
+    """``--crossing-angle 20`` scores against labels made again from the case's strokes: a 30° crossing,
+    which the case's own (37°) labels leave out, becomes a ground-truth junction; a case without
+    strokes is one line."""
+    from PIL import Image
+
+    from pipeline.eval_keypoints import main
+
+    d = synthetic.cross(size=96, angle1=10.0, angle2=40.0, length=70.0)
+    Image.fromarray((d.grey * 255).round().astype(np.uint8)).save(tmp_path / "x.png")
+    ends = [p.tolist() for s in d.strokes for p in (s[0], s[-1])]
+    case = {"strokes": [s.tolist() for s in d.strokes], "width": d.width, "endpoints": ends, "junctions": [],
+            "corners": []}
+    (tmp_path / "x.json").write_text(json.dumps(case))
+    n_gt = {}
+    for angle in (None, 37, 20):
+        out = tmp_path / f"kp{angle}.json"
+        assert main([str(tmp_path), "--json", str(out)] + ([] if angle is None else ["--crossing-angle", str(angle)])) == 0
+        res = json.loads(out.read_text())
+        n_gt[angle] = res["cases"][0]["n_gt"]
+        assert res["summary"]["labels"] == ("case" if angle is None else f"relabelled, crossings from {angle}°")
+    assert n_gt == {None: 4, 37: 4, 20: 5}
+    (tmp_path / "x.json").write_text(json.dumps({"endpoints": ends, "junctions": [], "corners": []}))
+    capsys.readouterr()
+    assert main([str(tmp_path), "--crossing-angle", "20"]) == 2
+    assert "needs the case's vector strokes" in capsys.readouterr().err
+
+
 def test_missing_packaged_weights_are_an_error_not_a_random_network(tmp_path, monkeypatch):
     """A deleted weights file must stop the stage: a randomly initialised network gives plausible nonsense."""
     import stages.keypoints.stage as kp
