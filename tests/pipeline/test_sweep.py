@@ -44,3 +44,22 @@ def test_lambda_and_dt_sweep_recomputes_only_downstream(tmp_path, cli):
     svgs = sorted(p.parent.name for p in (tmp_path / "out").glob("*/vee.svg"))
     assert len(svgs) == jobs
     assert "flow.dt=0.005,flow.iterations=60,flow.lam=0.05" in svgs
+
+
+@pytest.mark.slow
+def test_an_extension_sweep_leaves_the_field_graph_and_topology_alone(tmp_path, cli):
+    """The field's extension is its own stage: sweeping its wall (``extension.scale``) recomputes
+    extension → flow → select → export, never the field solve, the graph or the topology."""
+    img = tmp_path / "vee.png"
+    img.write_bytes(synthetic.vee(size=56, width=3).png_bytes())
+    common = (f"input={img}", "runtime.cluster=sync", "flow.iterations=30")
+    assert cli(*common, cwd=tmp_path).returncode == 0
+    sweep = cli("-m", *common, "extension.scale=1.0,4.0", cwd=tmp_path)
+    assert sweep.returncode == 0, sweep.stderr
+    computed = {}
+    for line in sweep.stderr.splitlines():
+        cells = [c.strip() for c in line.split("│")[1:-1]]
+        if len(cells) == 6 and cells[0] in BY_NAME:
+            computed[cells[0]] = computed.get(cells[0], 0) + int(cells[1])
+    assert all(computed[s] == 2 for s in ("extension", "flow", "select", "export")), computed
+    assert all(computed[s] == 0 for s in ("prep", "keypoints", "field", "graph", "topology")), computed
