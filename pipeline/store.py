@@ -19,8 +19,8 @@ readers that go through this class. A per-item result is a few bytes (its arrays
 shapes as JSON, their bytes, and a BLAKE2b digest of all that); the results one task computed are
 written together, as one *pack* (an index of item keys and sizes, then the results), to ``.tmp`` and
 renamed the same way — one file, not one per item: 333 small files took 0.1–0.3 s of the elephant's
-default run on this project's machine. A lookup reads the packs of one image (a sweep of ten λ values
-leaves ten, ~0.7 MB each for the elephant's 333 paths). A result that is missing or unreadable
+default run on this project's machine. A lookup reads the index of each pack of one image and only the
+results it wants (a sweep of ten λ values leaves ten packs, ~0.7 MB each for the elephant's 333 paths). A result that is missing or unreadable
 (truncated, corrupted: the digest) is simply absent, and the engine computes the item again. (Stores
 written before packs keep their one-file results under ``.items/<stage>/<key[:2]>/``: never read.)
 """
@@ -34,7 +34,7 @@ import shutil
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
@@ -141,30 +141,39 @@ def encode_pack(items: list[tuple[str, dict[str, np.ndarray]]]) -> bytes:
     return b"".join([PACK_MAGIC, len(index).to_bytes(4, "little"), index, *blobs])
 
 
-def decode_pack(raw: bytes, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]:
-    """The intact results of ``wanted`` keys in a pack; a torn or corrupted result is left out, an
-    unreadable index gives nothing."""
-    at = len(PACK_MAGIC) + 4
-    if not raw.startswith(PACK_MAGIC) or len(raw) < at:
+def read_pack(f: BinaryIO, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]:
+    """The intact results of ``wanted`` keys in a pack open for reading (binary, seekable).
+
+    Only the index and the wanted results are read, so a lookup costs what it finds, not the size of
+    every pack of the image. A torn or corrupted result is left out; an unreadable index gives nothing.
+    """
+    head = f.read(len(PACK_MAGIC) + 4)
+    if len(head) < len(PACK_MAGIC) + 4 or not head.startswith(PACK_MAGIC):
         return {}
-    end = at + int.from_bytes(raw[len(PACK_MAGIC):at], "little")
+    n = int.from_bytes(head[len(PACK_MAGIC):], "little")
     try:
-        index = json.loads(raw[at:end])
-    except ValueError:
+        index = json.loads(f.read(n))
+        entries = [(str(e[0]), int(e[1])) for e in index]
+    except (ValueError, TypeError, IndexError, KeyError):
         return {}
-    out = {}
-    for entry in index if isinstance(index, list) else ():
-        try:
-            key, size = str(entry[0]), int(entry[1])
-        except (TypeError, ValueError, IndexError):
-            return out
+    out: dict[str, dict[str, np.ndarray]] = {}
+    offset = len(head) + n
+    for key, size in entries:
         if key in wanted and key not in out:
+            f.seek(offset)
             try:
-                out[key] = decode_item(raw[end:end + size])
+                out[key] = decode_item(f.read(size))
             except (ValueError, TypeError):
                 pass
-        end += size
+        offset += size
     return out
+
+
+def decode_pack(raw: bytes, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]:
+    """:func:`read_pack` on a pack's bytes."""
+    import io
+
+    return read_pack(io.BytesIO(raw), wanted)
 
 
 class ArtifactStore:
@@ -306,10 +315,9 @@ class ArtifactStore:
                 continue
             try:
                 with self.fs.open(pack, "rb") as f:
-                    raw = f.read()
+                    found.update(read_pack(f, wanted - found.keys()))
             except OSError:
                 continue
-            found.update(decode_pack(raw, wanted - found.keys()))
         return [found.get(k) for k in keys]
 
     # -- reading -------------------------------------------------------------------------------

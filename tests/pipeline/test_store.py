@@ -122,3 +122,25 @@ def test_per_item_results_round_trip_as_packs(tmp_path, url):
     assert set(decode_pack(bytes(flipped), {"ka", "kb"})) == {"ka"}      # its digest
     assert decode_pack(b"not a pack at all", {"ka"}) == {}
     assert decode_pack(raw[:len(raw) // 50], {"ka"}) == {}               # the index itself torn
+
+
+def test_a_pack_lookup_reads_the_index_and_the_wanted_results_only():
+    """Packs pile up (one per λ of a sweep): a lookup must cost what it finds, not every pack's size."""
+    import io
+
+    from pipeline.store import encode_pack, read_pack
+
+    big = {"curve": np.zeros((5000, 2))}
+    raw = encode_pack([("ka", big), ("kb", {"curve": np.ones((3, 2))}), ("kc", big)])
+
+    class Counting(io.BytesIO):
+        n = 0
+
+        def read(self, size=-1):
+            out = super().read(size)
+            Counting.n += len(out)
+            return out
+
+    got = read_pack(Counting(raw), {"kb"})
+    assert list(got) == ["kb"] and np.array_equal(got["kb"]["curve"], np.ones((3, 2)))
+    assert Counting.n < len(raw) // 10
