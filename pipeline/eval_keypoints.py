@@ -26,28 +26,31 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stages.evaluate.keypoints import TYPES, MatchResult, f1_authors, f1_authors_per_class, match_keypoints, read_pts
 from stages.prep import internal_scale
 
+if TYPE_CHECKING:
+    from stages.keypoints.training.config import LabelRules
+
 _JSON_KEYS = (("endpoints", 1), ("junctions", 3), ("corners", 5))
 
 
-def load_ground_truth(png: Path, crossing_angle: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+def load_ground_truth(png: Path, rules: LabelRules | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Ground-truth keypoints beside ``png`` (``.json`` or ``.pts``), or None.
 
-    ``crossing_angle``: instead of the case's own labels, label its ``strokes`` (and ``width``) again
-    with the training rules (:func:`stages.keypoints.training.labels.label_keypoints`, ``conf/train``
-    ``labels``) but crossings junctions from this angle (degrees): the case labels (metrics.md §4.2)
-    call crossings junctions from about 37°, the acceptance scorer from 20°.
+    ``rules`` (:class:`~stages.keypoints.training.config.LabelRules`, see :func:`relabel_rules`): instead
+    of the case's own labels, label its ``strokes`` (and ``width``) again with these rules
+    (:func:`stages.keypoints.training.labels.label_keypoints`).
     """
     js = png.with_suffix(".json")
     if js.is_file():
         d = json.loads(js.read_text())
-        if crossing_angle is not None:
-            return _relabelled(d, crossing_angle, js)
+        if rules is not None:
+            return _relabelled(d, rules, js)
         pts, types = [], []
         for key, code in _JSON_KEYS:
             for p in d.get(key, []):
@@ -60,17 +63,23 @@ def load_ground_truth(png: Path, crossing_angle: float | None = None) -> tuple[n
     return None
 
 
-def _relabelled(case: dict, crossing_angle: float, where: Path) -> tuple[np.ndarray, np.ndarray]:
+def relabel_rules(crossing_angle: float) -> LabelRules:
+    """The training label rules (``conf/train`` ``labels``) with crossings junctions from
+    ``crossing_angle`` degrees: the case labels (metrics.md §4.2) use about 37°, the acceptance scorer 20°."""
     from pipeline.registry import default_config
-    from stages.errors import InputError
     from stages.keypoints.training.config import LabelRules
+
+    return LabelRules(**dict(default_config("train")["labels"], crossing_min_deg=float(crossing_angle)))
+
+
+def _relabelled(case: dict, rules: LabelRules, where: Path) -> tuple[np.ndarray, np.ndarray]:
+    from stages.errors import InputError
     from stages.keypoints.training.labels import label_keypoints
 
     if "strokes" not in case or "width" not in case:
         raise InputError(f"{where.name}: --crossing-angle needs the case's vector strokes and width")
     strokes = [np.asarray(st, np.float64).reshape(-1, 2) for st in case["strokes"]]
     widths = np.broadcast_to(np.asarray(case["width"], np.float64), (len(strokes),))
-    rules = LabelRules(**dict(default_config("train")["labels"], crossing_min_deg=float(crossing_angle)))
     pts, types = label_keypoints(strokes, widths, rules)
     return np.asarray(pts, float).reshape(-1, 2), np.asarray(types, np.int8)
 
@@ -88,7 +97,7 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     """Run prep + keypoints on every drawing with ground truth in ``folder`` and score it.
 
     ``crossing_angle``: score against labels made again from the cases' strokes with this crossing
-    angle (:func:`load_ground_truth`).
+    angle (:func:`relabel_rules`, :func:`load_ground_truth`).
 
     Returns
     -------
@@ -99,12 +108,13 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
     from stages import keypoints as kp_stage
 
     prep_cfg, kp_cfg = _configs(kp_overrides)
+    rules = None if crossing_angle is None else relabel_rules(crossing_angle)
     pngs = [folder] if folder.is_file() else sorted(folder.glob("*.png"))
     cases, pooled = [], MatchResult()
     t_total = 0.0
     weights_name = None  # the stage's own name for the networks it ran (main + ensemble)
     for png in pngs:
-        gt = load_ground_truth(png, crossing_angle)
+        gt = load_ground_truth(png, rules)
         if gt is None:
             continue
         if limit is not None and len(cases) >= limit:

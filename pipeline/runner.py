@@ -275,10 +275,9 @@ def run_per_item(module, task: Task, store: ArtifactStore, inputs: dict) -> tupl
     results = store.load_items(task.stage, task.image_key, keys)
     missing = [i for i, r in enumerate(results) if r is None]
     if missing:
-        fresh = module.run_items(plan, missing)
-        store.save_items(task.stage, task.image_key, [(keys[i], r) for i, r in zip(missing, fresh)])
-        for i, r in zip(missing, fresh):
-            results[i] = r
+        fresh = dict(zip(missing, module.run_items(plan, missing)))
+        store.save_items(task.stage, task.image_key, [(keys[i], r) for i, r in fresh.items()])
+        results = [fresh.get(i, r) for i, r in enumerate(results)]
     return module.assemble(plan, results), (len(keys) - len(missing), len(keys))
 
 

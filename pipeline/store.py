@@ -169,13 +169,6 @@ def read_pack(f: BinaryIO, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]
     return out
 
 
-def decode_pack(raw: bytes, wanted: set[str]) -> dict[str, dict[str, np.ndarray]]:
-    """:func:`read_pack` on a pack's bytes."""
-    import io
-
-    return read_pack(io.BytesIO(raw), wanted)
-
-
 class ArtifactStore:
     """A content-addressed store on a local path or an fsspec URL.
 
@@ -311,11 +304,14 @@ class ArtifactStore:
         except (FileNotFoundError, NotADirectoryError):
             packs = []
         for pack in packs:
-            if not str(pack).endswith(".pack") or not wanted - found.keys():
+            left = wanted - found.keys()
+            if not left:
+                break
+            if not str(pack).endswith(".pack"):
                 continue
             try:
                 with self.fs.open(pack, "rb") as f:
-                    found.update(read_pack(f, wanted - found.keys()))
+                    found.update(read_pack(f, left))
             except OSError:
                 continue
         return [found.get(k) for k in keys]

@@ -10,7 +10,7 @@ Choices made on purpose
 -----------------------
 * **A stage of its own**, not the field stage's last step: only the flow reads it, so an in-process
   run computes it in the keypoints child once the keypoints are done, off the field → graph path
-  (the elephant's default run: the field stage 0.59 → 0.37 s; stages/DECISIONS.md, engine).
+  (the elephant's default run: the field stage 0.57 → 0.40 s; stages/DECISIONS.md, engine).
 * **From the stored field**: the band values are the field artifact's complex64 coefficients (the
   field stage solved in float64) and the smart weights its float32 ``smart_weights``; the ring moves
   in its last bits against a solve from float64 inputs, below the artifact's complex64 rounding.
@@ -75,7 +75,7 @@ def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray
     k = int(in_ring.sum())
     rhs = -(lrb @ band_vals)
     x, iters, converged = _conjugate_gradient(lrr.__matmul__, lrr.diagonal(), rhs, None, cfg.cg_rtol,
-                                              max(1, cfg.cg_max_iterations))
+                                              cfg.cg_max_iterations)
     dist = ndi.distance_transform_cdt(~mask, metric="taxicab").astype(np.float64)
     scale = cfg.scale * dist[ring]
     xc = x.view(np.complex128)
