@@ -22,7 +22,8 @@ renamed the same way — one file, not one per item: 333 small files took 0.1–
 default run on this project's machine. A lookup reads the index of each pack of one image and only the
 results it wants (a sweep of ten λ values leaves ten packs, ~0.7 MB each for the elephant's 333 paths). A result that is missing or unreadable
 (truncated, corrupted: the digest) is simply absent, and the engine computes the item again. (Stores
-written before packs keep their one-file results under ``.items/<stage>/<key[:2]>/``: never read.)
+written before packs kept one file per result under ``.items/<stage>/<key[:2]>/``; nothing reads them,
+and the next run's :meth:`ArtifactStore.sweep_tmp` removes them.)
 """
 
 from __future__ import annotations
@@ -357,11 +358,21 @@ class ArtifactStore:
         return int(sum(self.fs.du(self.path_for(stage, key), total=False).values()))
 
     def sweep_tmp(self, older_than_s: float = 3600.0) -> int:
-        """Remove abandoned temporary directories (from killed runs) older than ``older_than_s``."""
-        tmp = self._join(".tmp")
-        if not self.local or not os.path.isdir(tmp):
+        """Remove abandoned temporary directories (from killed runs) older than ``older_than_s``, and the
+        one-file per-item results of stores written before packs (never read: their prefix folders,
+        ``.items/<stage>/<key[:2]>/``, are the only two-character names there)."""
+        if not self.local:
             return 0
         n = 0
+        items = self._join(ITEMS)
+        for stage in (os.scandir(items) if os.path.isdir(items) else ()):
+            for entry in (os.scandir(stage.path) if stage.is_dir(follow_symlinks=False) else ()):
+                if len(entry.name) == 2 and entry.is_dir(follow_symlinks=False):
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    n += 1
+        tmp = self._join(".tmp")
+        if not os.path.isdir(tmp):
+            return n
         now = time.time()
         for entry in os.scandir(tmp):
             try:
