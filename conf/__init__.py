@@ -5,4 +5,6 @@ structured configs (:mod:`pipeline.schema`) that the app configs name as ``<grou
 composition — the commands, ``hydra.compose`` in tests and scripts — checks the YAML against them.
 """
 
-import pipeline.schema  # noqa: F401  (registers the <group>_schema structured configs)
+import pipeline.schema
+
+pipeline.schema.register()   # the <group>_schema structured configs

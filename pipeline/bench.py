@@ -32,12 +32,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.bench_report import case_picture, pick_sort_column, print_tables, safe_name, sort_key, write_report
-from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError
+from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError, hydra_app, multirun_folder
 from pipeline.runner import BatchResult, TaskResult, plan, run_batch
 from pipeline.store import ArtifactStore
 from stages.config import from_section
@@ -410,16 +409,7 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     bcfg = OmegaConf.to_container(cfg.bench, resolve=True)
     from_section(BenchConfig, bcfg, "bench")  # every key present, none unknown
     cases = discover_cases(list(bcfg["cases"] or []), bcfg["limit"])
-    out = Path(str(bcfg["out"]))
-    try:  # a sweep (-m): one report per job, named after its overrides
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        hc = HydraConfig.get()
-        if hc.mode == RunMode.MULTIRUN:
-            out = out / (hc.job.override_dirname or "default")
-    except ValueError:  # not running under Hydra
-        pass
+    out = multirun_folder(Path(str(bcfg["out"])))   # a sweep (-m): one report per job
     store = ArtifactStore(str(cfg.store.path))
     images = [c.image for c in cases]
     if len({str(i) for i in images}) != len(images):
@@ -489,9 +479,11 @@ def _job(cfg: DictConfig) -> bool:
     return any(r.get("error") for r in run_bench(cfg)[0])
 
 
-@hydra.main(version_base=None, config_path="pkg://conf", config_name="bench_app")
-def _app(cfg: DictConfig) -> None:
+def _run_job(cfg: DictConfig) -> None:
     _EXIT.job(_job, cfg)
+
+
+_app = hydra_app(_run_job, "bench_app")
 
 
 def main() -> None:

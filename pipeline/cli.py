@@ -17,7 +17,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
-import hydra
 from omegaconf import DictConfig
 
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
@@ -147,7 +146,13 @@ def _resolve_one(spec: str) -> list[tuple[Path, Path]]:
 
 def job_output_dir(cfg: DictConfig) -> Path:
     """The output folder; in a multirun, a sub-folder named after the job's overrides."""
-    out = Path(str(cfg.output))
+    return multirun_folder(Path(str(cfg.output)))
+
+
+def multirun_folder(out: Path) -> Path:
+    """``out``, or in a multirun (``-m``) its sub-folder named after the job's overrides."""
+    if "hydra" not in sys.modules:   # no Hydra app ran (a cached plain line): not a multirun
+        return out
     try:
         from hydra.core.hydra_config import HydraConfig
         from hydra.types import RunMode
@@ -498,14 +503,23 @@ class ExitCode:
         no output subdir, no log files).
         """
         args, self.inputs = split_arguments(sys.argv[1:], self.positional)
-        try:
-            plain = check_overrides(args)
-        except UsageError as exc:
-            print(f"{self.prog}: error: {exc}", file=sys.stderr)
-            sys.exit(2)
+        cached = None
+        if single is not None:
+            from pipeline.config_cache import cached_config
+
+            cached = cached_config(single[1], args)   # a plain line run before: no Hydra at all
+        plain = cached is not None
+        if not plain:
+            try:
+                plain = check_overrides(args)
+            except UsageError as exc:
+                print(f"{self.prog}: error: {exc}", file=sys.stderr)
+                sys.exit(2)
         sys.argv[1:] = args
         try:
-            if single is not None and plain:
+            if cached is not None:
+                self.job(single[0], cached)
+            elif single is not None and plain:
                 job, config_name = single
                 from pipeline.config_cache import compose_config
 
@@ -563,9 +577,26 @@ def _job(cfg: DictConfig) -> bool:
     return bool(run(cfg, _EXIT.inputs).failed_images)
 
 
-@hydra.main(version_base=None, config_path="pkg://conf", config_name="config")
-def _app(cfg: DictConfig) -> None:
+def hydra_app(body: Callable[[DictConfig], None], config_name: str) -> Callable[[], None]:
+    """``@hydra.main`` on ``body`` with this package's config ``config_name``, built when it is called.
+
+    Why: importing Hydra costs ~50 ms of every start-up, and only a command line that needs its app (a
+    sweep, a Hydra flag, a ``hydra.`` key) or a first composition needs Hydra at all; a plain line run
+    before reads its config from :mod:`pipeline.config_cache`.
+    """
+    def app() -> None:
+        import hydra
+
+        hydra.main(version_base=None, config_path="pkg://conf", config_name=config_name)(body)()
+
+    return app
+
+
+def _run_job(cfg: DictConfig) -> None:
     _EXIT.job(_job, cfg)
+
+
+_app = hydra_app(_run_job, "config")
 
 
 def exit_now(code: object) -> None:

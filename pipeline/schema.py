@@ -1,23 +1,23 @@
 """Structured configs: every config group is the dataclass its code reads, registered with Hydra.
 
 Each stage declares its parameters as one dataclass (``stages.<stage>.<Stage>Config``, fields without
-defaults: the values live in ``conf/<stage>/default.yaml`` only). Importing this module registers each
-one in Hydra's ConfigStore as ``<group>_schema``, and the app configs (``conf/config.yaml``,
-``train_app.yaml``) put it first in the group, so composing the YAML onto it checks every key and type:
-an unknown key (in a file or an override) or a value of the wrong type is an error at start-up, and a
-key the file lacks is reported by :func:`validate`.
+defaults: the values live in ``conf/<stage>/default.yaml`` only). :func:`register` (called by
+``conf/__init__.py``, which Hydra imports before it composes) stores each one in Hydra's ConfigStore
+as ``<group>_schema``, and the app configs (``conf/config.yaml``, ``train_app.yaml``) put it first in
+the group, so composing the YAML onto it checks every key and type: an unknown key (in a file or an
+override) or a value of the wrong type is an error at start-up, and a key the file lacks is reported
+by :func:`validate`.
 
-Every start-up imports this module (``conf/__init__.py``), so what it imports stays light: a stage's
-package holds its dataclasses, not its code (:mod:`stages.lazy`), and the training's and the bench's
-dataclasses are in light modules too (:mod:`stages.keypoints.training.config`, :mod:`stages.evaluate`);
-``tests/pipeline/test_cli.py`` checks that a cached run imports no numba, scipy or torch.
+Every start-up imports this module (``conf/__init__.py``, the runner's :func:`validate`), so what it
+imports stays light, Hydra only in :func:`register`: a stage's package holds its dataclasses, not its
+code (:mod:`stages.lazy`), and the training's and the bench's dataclasses are in light modules too
+(:mod:`stages.keypoints.training.config`, :mod:`stages.evaluate`); ``tests/pipeline/test_cli.py``
+checks that a cached run imports no numba, scipy or torch, nor Hydra where its config is cached.
 """
 
 from __future__ import annotations
 
 from typing import Any
-
-from hydra.core.config_store import ConfigStore
 
 from pipeline.bench import BenchConfig
 from pipeline.runner import RuntimeConfig, stage_config
@@ -44,7 +44,10 @@ SCHEMAS: dict[str, type] = {
 
 
 def register() -> None:
-    """Store every schema in Hydra's ConfigStore as ``<group>_schema`` (idempotent)."""
+    """Store every schema in Hydra's ConfigStore as ``<group>_schema`` (idempotent; ``conf/__init__.py``
+    calls it before Hydra composes: :func:`validate` alone needs no Hydra)."""
+    from hydra.core.config_store import ConfigStore
+
     cs = ConfigStore.instance()
     for group, cls in SCHEMAS.items():
         cs.store(name=f"{group}_schema", node=cls)
@@ -62,6 +65,3 @@ def validate(cfg: Any, groups: list[str] | None = None) -> None:
         section = stage_config(cfg, group)
         if section:
             from_section(SCHEMAS[group], section, group)
-
-
-register()

@@ -232,12 +232,14 @@ runpy.run_module("pipeline.cli", run_name="__main__")
 
 
 @pytest.mark.slow
-def test_a_cached_run_imports_no_heavy_library(tmp_path, cli):
+def test_a_cached_run_imports_no_heavy_library(tmp_path, cli, monkeypatch):
     """A re-run whose artifacts are all stored imports no stage's code, nor numba, scipy, scikit-image,
-    torch, dask, networkx or PuLP (issue 14: a fully cached run under a second)."""
+    torch, dask, networkx or PuLP (issue 14: a fully cached run under a second); the same command line
+    reads its config from the config cache and imports no Hydra either."""
     import subprocess
     import sys
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))   # the first run fills it
     (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
     first = cli("input=vee.png", "runtime.cluster=sync", cwd=tmp_path)
     assert first.returncode == 0, first.stderr
@@ -251,6 +253,7 @@ def test_a_cached_run_imports_no_heavy_library(tmp_path, cli):
     assert "pipeline.schema" in modules and "stages.flow" in modules     # the listing is there
     heavy = [m for m in modules if m.split(".")[0] in HEAVY or m.endswith(".stage") or ".keypoints.network" in m]
     assert heavy == [], "a cached run imported " + ", ".join(heavy)
+    assert "hydra" not in modules, "a command line whose config is cached imported Hydra"
 
 
 @pytest.mark.slow
