@@ -89,7 +89,6 @@ def test_killed_writer_leaves_nothing_readable(tmp_path):
     assert store.load("flow", "k3").data["n"] == 3
 
 
-
 def test_one_file_results_of_stores_before_packs_are_swept(tmp_path):
     """A store written before packs holds the flow's results as one file each under two-character
     prefix folders that nothing reads any more: the next run's sweep removes them, never a pack."""
@@ -101,6 +100,7 @@ def test_one_file_results_of_stores_before_packs_are_swept(tmp_path):
     assert store.sweep_tmp() == 1
     assert not old.exists()
     assert store.load_items("flow", "img1", ["ka"])[0]["curve"].shape == (2, 2)
+
 
 def test_ragged_round_trip():
     parts = [np.zeros((3, 2)), np.ones((0, 2)), np.full((2, 2), 5.0)]
