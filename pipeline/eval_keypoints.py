@@ -67,9 +67,11 @@ def relabel_rules(crossing_angle: float) -> LabelRules:
     """The training label rules (``conf/train`` ``labels``) with crossings junctions from
     ``crossing_angle`` degrees: the case labels (metrics.md §4.2) use about 37°, the acceptance scorer 20°."""
     from pipeline.registry import default_config
+    from stages.config import from_section
     from stages.keypoints.training.config import LabelRules
 
-    return LabelRules(**dict(default_config("train")["labels"], crossing_min_deg=float(crossing_angle)))
+    section = dict(default_config("train")["labels"], crossing_min_deg=float(crossing_angle))
+    return from_section(LabelRules, section, "train.labels")
 
 
 def _relabelled(case: dict, rules: LabelRules, where: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -38,10 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.registry import STAGES as REGISTRY
+
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared" / "data" / "drawings"
 STAND_IN = SHARED / "scanned" / "elephant.png"
-STAGES = ("prep", "keypoints", "keypoint_edits", "field", "extension", "graph", "topology", "flow", "select", "export")
+STAGES = tuple(s.name for s in REGISTRY)   # the DAG, in its order
 
 
 def polyvec(inputs: list[str], out: str, store: str, *overrides: str, env: dict | None = None) -> dict:

@@ -48,14 +48,13 @@ DATA = SHARED / "realvec_dev"
 CACHE = Path(os.environ.get("POLYVEC_QUALITY_CACHE", "/tmp/polyvec-quality"))
 sys.path.insert(0, str(ROOT))
 
-STAGES = ("prep", "field", "extension", "graph", "keypoints", "topology", "flow", "select", "export")
-INPUTS = {"prep": (), "field": ("prep",), "extension": ("prep", "field"), "graph": ("prep", "field"),
-          "keypoints": ("prep",), "topology": ("prep", "field", "graph", "keypoints"),
-          "flow": ("prep", "extension", "graph", "topology"),
-          "select": ("prep", "topology", "flow"), "export": ("prep", "topology", "flow", "select")}
-SOURCES = {"prep": ["stages/prep"], "field": ["stages/field"], "extension": ["stages/extension"], "graph": ["stages/graph"],
-           "keypoints": ["stages/keypoints"], "topology": ["stages/topology"], "flow": ["stages/flow"],
-           "select": ["stages/select"], "export": ["stages/export"]}
+from pipeline.registry import STAGES as REGISTRY  # noqa: E402  (after the sys.path line)
+
+# The DAG of pipeline.registry without keypoint_edits: here the topology reads the keypoints directly.
+STAGES = tuple(s.name for s in REGISTRY if s.name != "keypoint_edits")
+INPUTS = {s.name: tuple("keypoints" if i == "keypoint_edits" else i for i in s.inputs)
+          for s in REGISTRY if s.name != "keypoint_edits"}
+SOURCES = {stage: [f"stages/{stage}"] for stage in STAGES}
 KP_CODES = {"endpoints": 1, "junctions": 3, "corners": 5}
 TARGETS = {"f1_2": (">=", 0.97), "hausdorff_px": ("<=", 3.0), "endpoint_f1": (">=", 0.9),
            "junction_f1": (">=", 0.85)}
