@@ -548,20 +548,27 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             # compile there meanwhile. Started before the code check below (~0.7 s of imports): the
             # graph's warm-up is the first run's critical path.
             warmup.start(sorted(todo))
+        in_child = CHILD_STAGES if sync and runtime["keypoints_process"] else ()
+        # The child starts before the code check below, so that its own imports (torch) and the
+        # networks' weights load on the other core meanwhile (stages/DECISIONS.md, engine).
+        child = (_ChildTasks(in_child, {name: stage_config(cfg, name) for name in in_child})
+                 if todo & set(in_child) else None)
         try:
             # Only now the code of the stages with work to do is imported (a stored artifact needs none).
             for spec in stages:
                 if spec.name in todo:
                     check_stage(spec, code=True)
             if sync:
-                _run_sync(pending, store.url, batch, report,
-                          in_child=CHILD_STAGES if runtime["keypoints_process"] else ())
+                _run_sync(pending, store.url, batch, report, in_child=in_child, child=child)
             else:
                 client = get_client(runtime)
                 if runtime["scheduler_address"]:
                     check_store_reachable(client, store)
                 _run_dask(pending, store.url, batch, report, client)
         finally:
+            if child is not None and child.proc.is_alive():  # a failed code check: _run_sync never ran
+                child.close(kill=True)
+                child.join()
             warmup.stop()  # nothing to stop unless in-process warm-ups were started
     batch.wall_s = time.perf_counter() - t0
     return batch
@@ -620,17 +627,18 @@ class _ChildTasks:
     same drawing took 1.5× their time alone (the GIL and the interpreter between numpy calls), beside
     a keypoints process hardly more (stages/DECISIONS.md, engine). The child is spawned at once, with
     SIGINT ignored (Ctrl-C is the driver's to report, as for dask's workers), and imports the
-    stages' code while the driver runs prep.
+    stages' code and preloads what they use (``configs``: each stage's config section, for its
+    ``preload``) while the driver checks the code and runs prep.
     """
 
-    def __init__(self, stages: tuple[str, ...]):
+    def __init__(self, stages: tuple[str, ...], configs: dict[str, dict] | None = None):
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.lock = threading.Lock()
         with _sigint_ignored():
-            self.proc = ctx.Process(target=_serve_tasks, args=(child, stages), daemon=True,
+            self.proc = ctx.Process(target=_serve_tasks, args=(child, stages, configs or {}), daemon=True,
                                     name="polyvec-" + "-".join(stages))
             self.proc.start()
         child.close()
@@ -664,11 +672,17 @@ class _ChildTasks:
             self.proc.join()
 
 
-def _serve_tasks(conn, stages: tuple[str, ...]) -> None:
-    """The child of :class:`_ChildTasks`: import the stages, then run tasks until told to stop."""
+def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict]) -> None:
+    """The child of :class:`_ChildTasks`: import the stages, preload what their tasks will use (a
+    stage's ``preload(section)``, given its config section), then run tasks until told to stop."""
     os.environ.update(THREAD_ENV)
     for name in stages:
-        BY_NAME[name].load()
+        mod = BY_NAME[name].load()
+        if name in configs and "preload" in dir(mod):
+            try:
+                mod.preload(configs[name])
+            except Exception:  # noqa: BLE001 - the task itself will fail with the clear message
+                pass
     try:
         while (message := conn.recv()) is not None:
             task, store_url, upstream = message
@@ -678,20 +692,23 @@ def _serve_tasks(conn, stages: tuple[str, ...]) -> None:
     os._exit(0)
 
 
-def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = ()) -> None:
+def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
+              child: "_ChildTasks | None" = None) -> None:
     """Run the pending tasks in this process, at most :data:`SYNC_THREADS` at once, in DAG order.
 
     A task starts when the tasks of its image that it reads have finished; earlier images first. A
     task that starts with nothing else running or ready runs ``alone`` (numba may use its whole pool:
-    the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`),
-    started when such a task is pending. On Ctrl-C no new task starts; the running ones finish (each
-    writes its artifact whole) and the child is killed.
+    the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`):
+    ``child`` when given (:func:`run_batch` starts it early), else one started here when such a task
+    is pending. On Ctrl-C no new task starts; the running ones finish (each writes its artifact
+    whole) and the child is killed.
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     left_in_child = sum(t.stage in in_child for _, t in waiting)
-    child = _ChildTasks(in_child) if left_in_child else None
+    if child is None and left_in_child:
+        child = _ChildTasks(in_child)
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}

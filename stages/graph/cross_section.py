@@ -61,9 +61,59 @@ from numba import njit
 from stages.graph.trace import _grow_f, choose_direction, coeffs_at, quartic_roots
 
 
+#: Sub-cells per pixel side of the crossing lookup (cells of 1/4 px).  A cross-section step looks for
+#: the streamline segments that cross it among the samples within h of it: in the whole pixels around
+#: it that was ~120 samples a step on the scanned elephant, in the sub-cells 16 (stages/DECISIONS.md,
+#: graph).  The crossings come in another order than the pixels' lists gave; sorted (stably) by arc
+#: length they are the same but for exact ties.
+SUB = 4
+
+
 @njit(cache=True)
-def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g, f, h, max_gap, max_steps,
-             tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y):
+def _cell_index(sx, sy, band):
+    """The samples grouped by sub-cell of their band pixel (a counting sort, ascending ids in each cell).
+
+    Returns ``(bidx, cell_start, cell_samples)``: ``bidx[row * W + col]`` the band pixel's index (−1 off
+    the band); the samples of sub-cell ``bidx · SUB² + b · SUB + a`` (row ``b``, column ``a`` of the
+    pixel) are ``cell_samples[cell_start[c]:cell_start[c + 1]]``, so the cells ``a_lo..a_hi`` of one
+    row are one contiguous range.
+    """
+    H, W = band.shape
+    bidx = np.full(H * W, -1, np.int64)
+    nb = np.int64(0)
+    for i in range(H):
+        for j in range(W):
+            if band[i, j]:
+                bidx[i * W + j] = nb
+                nb += 1
+    n = len(sx)
+    cell = np.empty(n, np.int64)
+    cell_start = np.zeros(nb * SUB * SUB + 1, np.int64)
+    for t in range(n):
+        x = np.float64(sx[t])
+        y = np.float64(sy[t])
+        j = int(x)
+        i = int(y)
+        # every sample lies on a band pixel (the trace stops before leaving the band)
+        c = (bidx[i * W + j] * (SUB * SUB) + min(int((y - i) * SUB), SUB - 1) * SUB
+             + min(int((x - j) * SUB), SUB - 1))
+        cell[t] = c
+        cell_start[c + 1] += 1
+    for c in range(nb * SUB * SUB):
+        cell_start[c + 1] += cell_start[c]
+    fill = np.empty(nb * SUB * SUB, np.int64)
+    for c in range(nb * SUB * SUB):
+        fill[c] = cell_start[c]
+    cell_samples = np.empty(n, np.int32)     # sample ids are int32 like the trace's lists
+    for t in range(n):
+        cell_samples[fill[cell[t]]] = t
+        fill[cell[t]] += 1
+    return bidx, cell_start, cell_samples
+
+
+@njit(cache=True)
+def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_start, cell_samples, k, g, f, h,
+             max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y):
     """One cross-section through sample ``g`` of curve ``k`` following unit root ``f``.
 
     Fills the work buffers (crossings ``cr_*``; the cross-section polyline ``poly_*`` for both sides,
@@ -119,50 +169,64 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g
             if singular[int(qy), int(qx)]:
                 sing[side] = s
                 break
-            # streamline samples whose segment may cross [p, q] lie within h + h of p
-            r = 2.0 * h
-            i_lo = max(0, int(min(py, qy) - r))
-            i_hi = min(H - 1, int(max(py, qy) + r))
-            j_lo = max(0, int(min(px, qx) - r))
-            j_hi = min(W - 1, int(max(px, qx) + r))
+            # a streamline segment (one step, h long) that crosses [p, q] starts within h of that
+            # segment, so its first sample lies in the box [p, q] ± r (r = h and a little more: float32
+            # samples); only the sub-cells meeting the box are searched
+            r = h + 1e-3
+            x_lo = min(px, qx) - r
+            x_hi = max(px, qx) + r
+            y_lo = min(py, qy) - r
+            y_hi = max(py, qy) + r
+            i_lo = max(0, int(y_lo))
+            i_hi = min(H - 1, int(y_hi))
+            j_lo = max(0, int(x_lo))
+            j_hi = min(W - 1, int(x_hi))
             ex = qx - px
             ey = qy - py
             for ii in range(i_lo, i_hi + 1):
+                b_lo = min(SUB - 1, int((y_lo - ii) * SUB)) if y_lo > ii else 0
+                b_hi = max(0, int((y_hi - ii) * SUB)) if y_hi < ii + 1 else SUB - 1
                 for jj in range(j_lo, j_hi + 1):
-                    t = head[ii * W + jj]
-                    while t >= 0:
-                        c = sc[t]
-                        li = t - c_start[c]
-                        if li + 1 < c_len[c]:
-                            ax = sx[t]
-                            ay = sy[t]
-                            bx = sx[t + 1] - ax
-                            by = sy[t + 1] - ay
-                            den = ex * by - ey * bx
-                            if den != 0.0:
-                                wx = ax - px
-                                wy = ay - py
-                                a = (wx * by - wy * bx) / den
-                                b = (wx * ey - wy * ex) / den
-                                if 0.0 <= a < 1.0 and 0.0 <= b < 1.0 and not (
-                                        c == k and abs(li + b - i_seed) < 1.5):
-                                    nb = math.sqrt(bx * bx + by * by)
-                                    tcx = bx / nb
-                                    tcy = by / nb
-                                    cf = abs(tcx * fr.real + tcy * fr.imag)
-                                    cg = abs(tcx * gr.real + tcy * gr.imag)
-                                    X = px + a * ex
-                                    Y = py + a * ey
-                                    yi = min(max(int(Y), 0), H - 1)
-                                    xj = min(max(int(X), 0), W - 1)
-                                    if cf >= cg and not singular[yi, xj] and ncr < cap_cr:
-                                        cr_curve[ncr] = c
-                                        cr_param[ncr] = li + b
-                                        cr_s[ncr] = sgn * (s + a * h)
-                                        ncr += 1
-                                        if s + a * h > last:
-                                            last = s + a * h
-                        t = nxt[t]
+                    cell0 = bidx[ii * W + jj]
+                    if cell0 < 0:
+                        continue
+                    a_lo = min(SUB - 1, int((x_lo - jj) * SUB)) if x_lo > jj else 0
+                    a_hi = max(0, int((x_hi - jj) * SUB)) if x_hi < jj + 1 else SUB - 1
+                    for bb in range(b_lo, b_hi + 1):
+                        row = cell0 * (SUB * SUB) + bb * SUB
+                        for m in range(cell_start[row + a_lo], cell_start[row + a_hi + 1]):
+                            t = cell_samples[m]
+                            c = sc[t]
+                            li = t - c_start[c]
+                            if li + 1 < c_len[c]:
+                                ax = sx[t]
+                                ay = sy[t]
+                                bx = sx[t + 1] - ax
+                                by = sy[t + 1] - ay
+                                den = ex * by - ey * bx
+                                if den != 0.0:
+                                    wx = ax - px
+                                    wy = ay - py
+                                    a = (wx * by - wy * bx) / den
+                                    b = (wx * ey - wy * ex) / den
+                                    if 0.0 <= a < 1.0 and 0.0 <= b < 1.0 and not (
+                                            c == k and abs(li + b - i_seed) < 1.5):
+                                        nb = math.sqrt(bx * bx + by * by)
+                                        tcx = bx / nb
+                                        tcy = by / nb
+                                        cf = abs(tcx * fr.real + tcy * fr.imag)
+                                        cg = abs(tcx * gr.real + tcy * gr.imag)
+                                        X = px + a * ex
+                                        Y = py + a * ey
+                                        yi = min(max(int(Y), 0), H - 1)
+                                        xj = min(max(int(X), 0), W - 1)
+                                        if cf >= cg and not singular[yi, xj] and ncr < cap_cr:
+                                            cr_curve[ncr] = c
+                                            cr_param[ncr] = li + b
+                                            cr_s[ncr] = sgn * (s + a * h)
+                                            ncr += 1
+                                            if s + a * h > last:
+                                                last = s + a * h
             s += h
             px = qx
             py = qy
@@ -235,9 +299,10 @@ def _argsort_stable(a, n):
 
 
 @njit(cache=True)
-def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, head, nxt, order, h, spacing,
+def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, order, h, spacing,
                     cover, min_gap, max_gap, max_steps, ambiguity, tie, lane_pad):
     H, W = band.shape
+    bidx, cell_start, cell_samples = _cell_index(sx, sy, band)
     n_samples = len(sx)
     covered = np.zeros(n_samples, np.bool_)
     half = max(1, spacing // 2)
@@ -266,9 +331,10 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
         L = c_len[k]
         i = 0
         while i < L:
-            if covered[st + i]:
+            while i < L and covered[st + i]:
                 i += 1
-                continue
+            if i == L:
+                break
             e = i
             while e < L and not covered[st + e]:
                 e += 1
@@ -304,8 +370,8 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
                         else:
                             f = v if cv > 0 else -v
                         ncr, np0, np1, sg0, sg1 = _section(
-                            c0, c2, band, singular, sx, sy, sc, c_start, c_len, head, nxt, k, g, f, h,
-                            max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y)
+                            c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_start, cell_samples,
+                            k, g, f, h, max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y)
                         srt = _argsort_stable(cr_s, ncr)
                         pos0 = 0
                         for q in range(ncr):
@@ -501,7 +567,7 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
     spacing = max(2, int(round(station_spacing / step)))
     out = _build_sections(
         c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.curve,
-        lines.start, lines.length, lines.head, lines.next, order, float(step), spacing,
+        lines.start, lines.length, order, float(step), spacing,
         float(cover_factor * station_spacing / step), max(1, int(round(min_station_gap / step))),
         float(max_gap), max(1, int(math.ceil(max_section_length / step))), float(ambiguity), float(tie),
         float(lane_pad))

@@ -23,9 +23,9 @@ spacing).  Traces of ≤ 2 samples are dropped, and so is a trace all of whose s
 The kernel is one sequential numba loop: each trace depends on every earlier one through the merge
 test, so it cannot be vectorised over seeds without changing the result (and the merge test is what
 keeps the lanes ~``merge_distance`` apart instead of one full-length trace per band pixel).  Measured
-on the scanned drawings (20–35 k band pixels, 1–2 M samples): 0.5–1.3 s.  Samples live in a per-pixel
-linked list (``head``/``next``), which :mod:`stages.graph.cross_section` reuses to find the streamlines
-crossing a cross-section.
+on the scanned drawings (20–35 k band pixels, 1–2 M samples): 0.3–0.9 s.  During the trace the samples
+live in per-pixel linked lists (``head``/``next``), which the merge test walks; the cross-sections
+index them afresh (:func:`stages.graph.cross_section._cell_index`).
 """
 
 from __future__ import annotations
@@ -210,6 +210,15 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
             if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, x0, y0, d0.real, d0.imag, np.int64(-1), np.int64(0), lag,
                        merge_d2, merge_cos):
                 continue
+            # room for the longest curve one seed can add, made here and not per step: an array
+            # reassigned inside the step loop costs numba's reference counting on every step
+            # (NRT_incref/decref were 40 % of the kernel's time; stages/DECISIONS.md, graph)
+            if n + 2 * max_half + 2 >= cap:
+                while n + 2 * max_half + 2 >= cap:
+                    cap *= 2
+                sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
+                ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
+                nxt = _grow_f(nxt, cap)
             cid = nc
             base = n
             reasons = np.empty(2, np.int8)
@@ -222,11 +231,6 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                 k = 0
                 if half == 0:
                     # the seed itself is sample 0 of the forward half
-                    if n + 1 >= cap:
-                        cap *= 2
-                        sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
-                        ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
-                        nxt = _grow_f(nxt, cap)
                     sx[n] = x0; sy[n] = y0; tx[n] = d0.real; ty[n] = d0.imag; sc[n] = cid; si[n] = 0
                     p = i * W + j
                     nxt[n] = head[p]
@@ -260,11 +264,6 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                                lag, merge_d2, merge_cos):
                         reason = MERGED
                         break
-                    if n + 1 >= cap:
-                        cap *= 2
-                        sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
-                        ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
-                        nxt = _grow_f(nxt, cap)
                     sx[n] = qx; sy[n] = qy
                     # tangents are oriented along the final curve order (backward half reversed)
                     tx[n] = sgn * nd.real; ty[n] = sgn * nd.imag
@@ -322,13 +321,13 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
             c_end[nc, 0] = reasons[1]
             c_end[nc, 1] = reasons[0]
             nc += 1
-    return (sx[:n].copy(), sy[:n].copy(), tx[:n].copy(), ty[:n].copy(), sc[:n].copy(), nxt[:n].copy(), head,
-            c_start[:nc].copy(), c_len[:nc].copy(), c_end[:nc].copy())
+    return (sx[:n].copy(), sy[:n].copy(), tx[:n].copy(), ty[:n].copy(), sc[:n].copy(), c_start[:nc].copy(),
+            c_len[:nc].copy(), c_end[:nc].copy())
 
 
 @dataclass
 class Streamlines:
-    """Traced curves and the per-pixel sample lookup.
+    """Traced curves.
 
     Attributes
     ----------
@@ -343,8 +342,6 @@ class Streamlines:
     end_reason : numpy.ndarray
         int8 (C, 2) why the curve stopped at its first / last sample (``LEFT``, ``SINGULAR``,
         ``MERGED``, ``CAP``, ``DEGENERATE``).
-    head, next : numpy.ndarray
-        int32 per-pixel linked lists of sample ids (``head[row * W + col]``, ``-1`` terminated).
     """
 
     xy: np.ndarray
@@ -353,8 +350,6 @@ class Streamlines:
     start: np.ndarray
     length: np.ndarray
     end_reason: np.ndarray
-    head: np.ndarray
-    next: np.ndarray
 
     @property
     def offsets(self) -> np.ndarray:
@@ -399,8 +394,8 @@ def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular
     mod = np.abs(seed_root)
     seed = np.where(band & (mod > 1e-12), seed_root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
     cap = max(1024, int(band.sum()) * 64)
-    sx, sy, tx, ty, sc, nxt, head, cs, cl, ce = _trace_all(
+    sx, sy, tx, ty, sc, cs, cl, ce = _trace_all(
         c0, c2, band, sing, np.ascontiguousarray(seed), float(step), int(max_half_samples),
         float(merge_distance) ** 2, float(merge_cos), int(self_merge_lag), float(tie), cap)
     return Streamlines(xy=np.stack([sx, sy], axis=1), tangent=np.stack([tx, ty], axis=1), curve=sc,
-                       start=cs, length=cl, end_reason=ce, head=head, next=nxt)
+                       start=cs, length=cl, end_reason=ce)

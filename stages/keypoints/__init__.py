@@ -82,6 +82,6 @@ class KeypointsConfig:
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
-    "stages.keypoints.stage": ("run", "load_model", "load_type_classifier", "keypoints_from_heatmaps",
+    "stages.keypoints.stage": ("run", "preload", "load_model", "load_type_classifier", "keypoints_from_heatmaps",
                                "render_keypoints"),
 })

@@ -131,6 +131,31 @@ def load_type_classifier(path: str | Path | None = None) -> TypeClassifier:
     return _TYPE_CLASSIFIERS[str(p)]
 
 
+def preload(cfg: dict) -> None:
+    """Import torch and load the networks and typing that :func:`run` with ``cfg`` uses, into this
+    process's caches.
+
+    For a process that will run keypoints tasks and has time before the first: the engine's keypoints
+    child calls it at start, while the driver checks the stages' code and runs prep (torch's import
+    and the weights were ~1.1 s of the first task; stages/DECISIONS.md, engine).
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``keypoints`` config section.
+    """
+    import torch
+
+    import stages.keypoints.inference  # noqa: F401 - its import (torch's submodules) is what takes long
+
+    c = from_section(KeypointsConfig, cfg, "keypoints")
+    torch.set_num_threads(c.torch_threads)
+    for weights in (c.weights, *c.detection_ensemble):
+        load_model(weights)
+    if c.typing == "valence":
+        load_type_classifier(c.type_classifier)
+
+
 def run(cfg: dict, prep: Artifact) -> Artifact:
     """Detect and classify keypoints.
 

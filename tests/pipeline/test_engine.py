@@ -512,3 +512,50 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
     a = ArtifactStore(str(tmp_path / "store-true")).load("keypoints", keys["true"])
     b = ArtifactStore(str(tmp_path / "store-false")).load("keypoints", keys["false"])
     assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["heatmaps"], b["heatmaps"])
+
+
+def test_the_keypoints_child_preloads_torch_and_the_networks_before_its_first_task(monkeypatch):
+    """The child imports torch and loads the keypoints' weights and typing as soon as it starts (its
+    first task used to pay ~1.1 s for them); a config its preload refuses is left to the task to report."""
+    from pipeline import runner
+    from pipeline.registry import default_config
+    from stages.keypoints import stage as kp
+
+    class Conn:                # no task: the child is told to stop at once
+        def recv(self):
+            return None
+
+    class Exit(Exception):
+        pass
+
+    def leave(code):
+        raise Exit(code)
+
+    monkeypatch.setattr(runner.os, "_exit", leave)
+    monkeypatch.setattr(runner, "THREAD_ENV", {})       # this process's environment stays as it is
+    monkeypatch.setattr(kp, "_MODELS", {})
+    monkeypatch.setattr(kp, "_TYPE_CLASSIFIERS", {})
+    with pytest.raises(Exit):
+        runner._serve_tasks(Conn(), ("keypoints", "extension"), {"keypoints": default_config("keypoints")})
+    assert len(kp._MODELS) == 1 and len(kp._TYPE_CLASSIFIERS) == 1 and "torch" in sys.modules
+    kp._MODELS.clear()
+    with pytest.raises(Exit):                              # an unknown key: no preload, no error here
+        runner._serve_tasks(Conn(), ("keypoints",), {"keypoints": {**default_config("keypoints"), "bogus": 1}})
+    assert not kp._MODELS
+
+
+def test_a_failed_code_check_leaves_no_keypoints_child(tmp_path, images, compose_cfg, monkeypatch):
+    """The keypoints child starts before the stages' code is checked; a check that fails stops it."""
+    import multiprocessing
+
+    import pipeline.registry as registry
+    from pipeline import runner
+
+    def broken(spec, code=False):
+        if code and spec.name == "graph":
+            raise registry.StageUnavailable("stage graph: broken on purpose")
+
+    monkeypatch.setattr(runner, "check_stage", broken)
+    with pytest.raises(registry.StageUnavailable, match="broken on purpose"):
+        run_batch(images[:1], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync"))
+    assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]

@@ -460,3 +460,79 @@ def test_cross_section_argsort_is_a_stable_argsort():
         two_runs = np.concatenate([[0.0], np.round(np.linspace(0.1, 3, half), 1),
                                    -np.round(np.linspace(0.1, 3, n - half), 1)])[:n]
         np.testing.assert_array_equal(_argsort_stable(two_runs, n), np.argsort(two_runs, kind="stable"))
+
+
+def test_cross_section_cell_index_groups_every_sample_by_its_sub_cell():
+    """The cross-sections' sample lookup: each band pixel's SUB × SUB cells, every sample once, in the
+    cell its coordinates fall in, ascending ids within a cell."""
+    from stages.graph.cross_section import SUB, _cell_index
+
+    band = np.zeros((5, 7), bool)
+    band[1:4, 2:6] = True
+    rng = np.random.default_rng(5)
+    rows, cols = np.nonzero(band)
+    pick = rng.integers(0, len(rows), 400)
+    sx = (cols[pick] + rng.random(400)).astype(np.float32)
+    sy = (rows[pick] + rng.random(400)).astype(np.float32)
+    sx[:4] = [2.0, 2.999999, 5.75, 3.25]                        # on sub-cell borders
+    sy[:4] = [1.0, 3.999999, 2.5, 1.25]
+    bidx, start, samples = _cell_index(sx, sy, band)
+    assert (bidx.reshape(band.shape) >= 0).sum() == band.sum() and start[-1] == 400
+    np.testing.assert_array_equal(np.sort(samples), np.arange(400))
+    x, y = sx.astype(np.float64), sy.astype(np.float64)
+    cell = (bidx[y.astype(int) * 7 + x.astype(int)] * SUB * SUB
+            + np.minimum((y % 1 * SUB).astype(int), SUB - 1) * SUB + np.minimum((x % 1 * SUB).astype(int), SUB - 1))
+    for c in range(len(start) - 1):
+        members = samples[start[c]:start[c + 1]]
+        np.testing.assert_array_equal(members, np.flatnonzero(cell == c))
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0, 61.0])
+def test_cross_section_finds_every_streamline_segment_it_crosses(angle):
+    """The cross-section kernel looks for crossing streamline segments only in the sub-cells near each
+    step: on a wide straight stroke it finds exactly the crossings a search over every sample finds."""
+    from stages.graph import cross_section as cs
+    from stages.graph.trace import trace_streamlines
+
+    p, f = _inputs("line", angle=angle, width=6.0)
+    t, s = _cfg("graph")["trace"], _cfg("graph")["sections"]
+    band = p["mask"]
+    c0 = np.where(band, f["c0"], 0).astype(np.complex128)
+    c2 = np.where(band, f["c2"], 0).astype(np.complex128)
+    lines = trace_streamlines(c0, c2, band, f["singular"], f["roots"][..., 0], step=t["step"],
+                              max_half_samples=t["max_half_samples"], merge_distance=t["merge_distance"],
+                              merge_cos=t["merge_cos"], self_merge_lag=t["self_merge_lag"], tie=t["tie"])
+    sx, sy = np.ascontiguousarray(lines.xy[:, 0]), np.ascontiguousarray(lines.xy[:, 1])
+    bidx, cstart, csamples = cs._cell_index(sx, sy, band)
+    k = int(np.argmax(lines.length))
+    g = int(lines.start[k] + lines.length[k] // 2)
+    tangent = complex(*lines.tangent[g].astype(np.float64))
+    root = tangent                       # the followed root: the cross-section goes across it
+    max_steps = int(np.ceil(s["max_section_length"] / t["step"]))
+    buf = [np.empty(4096, np.int64), np.empty(4096), np.empty(4096)]
+    poly = [np.empty((2, max_steps + 2)) for _ in range(3)]
+    ncr, n0, n1, _, _ = cs._section(c0, c2, band, np.ascontiguousarray(f["singular"]), sx, sy, lines.curve,
+                                    lines.start, lines.length, bidx, cstart, csamples, k, g, root, t["step"],
+                                    s["max_gap"], max_steps, t["tie"], *buf, *poly)
+    found = sorted((int(c), round(float(q), 4)) for c, q in zip(buf[0][1:ncr], buf[1][1:ncr]))
+    # every sample's segment against every step of the cross-section, vectorised
+    li = np.arange(len(sx)) - lines.start[lines.curve]
+    ok = li + 1 < lines.length[lines.curve]
+    ax, ay = sx[:-1][ok[:-1]], sy[:-1][ok[:-1]]
+    bx, by = sx[1:][ok[:-1]] - ax, sy[1:][ok[:-1]] - ay
+    cid, lid = lines.curve[:-1][ok[:-1]], li[:-1][ok[:-1]]
+    brute = []
+    for side, n in ((0, n0), (1, n1)):
+        px, py = poly[1][side, :n], poly[2][side, :n]
+        for i in range(n - 1):
+            ex, ey = px[i + 1] - px[i], py[i + 1] - py[i]
+            den = ex * by - ey * bx
+            wx, wy = ax - px[i], ay - py[i]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a = (wx * by - wy * bx) / den
+                b = (wx * ey - wy * ex) / den
+            hit = (den != 0) & (a >= 0) & (a < 1) & (b >= 0) & (b < 1)
+            hit &= ~((cid == k) & (np.abs(lid + b - (g - lines.start[k])) < 1.5))
+            brute += [(int(c), round(float(q), 4)) for c, q in zip(cid[hit], (lid + b)[hit])]
+    assert len(found) >= 7
+    assert found == sorted(brute)
