@@ -79,13 +79,15 @@ def _cell_index(sx, sy, band):
     row are one contiguous range.
     """
     H, W = band.shape
-    bidx = np.full(H * W, -1, np.int64)
+    bidx = np.empty(H * W, np.int64)   # not np.full: one more specialisation to compile (~0.2 s)
     nb = np.int64(0)
     for i in range(H):
         for j in range(W):
             if band[i, j]:
                 bidx[i * W + j] = nb
                 nb += 1
+            else:
+                bidx[i * W + j] = -1
     n = len(sx)
     cell = np.empty(n, np.int64)
     cell_start = np.zeros(nb * SUB * SUB + 1, np.int64)
