@@ -39,8 +39,8 @@ Choices, in short (each module's docstring has the reasons and measurements):
 * Components are dropped by width-padded bounding-box area only (the reference's "no vertex crosses
   two streamlines" rule deletes one-pixel-wide axis-aligned strokes).
 
-Measured (tests/benchmarks/bench_graph.py, the four scanned drawings, 2 shared cores): 1.1–2.2 s CPU,
-peak RSS ≤ 370 MB; vertices are centred on the band to 0.10 px (median) / 0.3 px (90th percentile)
+Measured (tests/benchmarks/bench_graph.py, the four scanned drawings, 2 shared cores): 0.75–1.45 s CPU,
+peak RSS ≤ 355 MB (2026-11-27); vertices are centred on the band to 0.10 px (median) / 0.3 px (90th percentile)
 along their normals.
 
 The artifact follows stages/INTERFACES.md "graph"; :func:`~stages.graph.graph_picture.render_graph` draws it over
