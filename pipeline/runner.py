@@ -391,19 +391,39 @@ _CLIENT_SPEC: tuple | None = None
 
 
 @contextmanager
-def _sigint_ignored():
-    """SIGINT ignored while worker processes are started from the main thread, so that they inherit
-    it (an ignored SIGINT survives exec, and Python then installs no KeyboardInterrupt handler): the
-    terminal sends Ctrl-C to the whole process group, and each worker would print its own
-    tracebacks; the driver reports the interrupt once and shuts them down. Elsewhere, a no-op
-    (only the main thread may set signal handlers)."""
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+def _sigint_held():
+    """Ctrl-C held back while this thread starts worker processes, then raised once.
+
+    SIGINT is blocked in this thread, so that the processes it starts and the threads it starts
+    meanwhile (dask's event loop, which starts the nannies) inherit it blocked: the terminal sends
+    Ctrl-C to the whole process group, and each worker would print its own tracebacks; the driver
+    reports the interrupt once and shuts them down. A Ctrl-C pressed meanwhile (pending, or taken by
+    an older thread of this process and recorded by a handler that only notes it) is raised as
+    KeyboardInterrupt when the block ends. SIGINT used to be *ignored* here, which the workers
+    inherited as well but which dropped a Ctrl-C pressed while a local cluster started: a folder's
+    run went on to its end (stages/DECISIONS.md, engine). Elsewhere than the main thread, a no-op.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    # multiprocessing starts its resource tracker at the first spawn and *unblocks* SIGINT in the
+    # spawning thread afterwards: started before the block, it leaves the block alone
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    pressed = []
+    handler = signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        if main_thread:
-            signal.signal(signal.SIGINT, previous)
+        if signal.SIGINT in signal.sigpending():
+            signal.sigwait({signal.SIGINT})
+            pressed.append(signal.SIGINT)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, handler)
+    if pressed and handler is not signal.SIG_IGN:
+        raise KeyboardInterrupt
 
 
 def get_client(runtime: dict):
@@ -424,17 +444,20 @@ def get_client(runtime: dict):
             client = Client(address, timeout=runtime["connect_timeout_s"])
         except (OSError, TimeoutError) as exc:
             raise ClusterError(f"cannot reach the dask scheduler at {address} ({type(exc).__name__})") from None
-    else:
+        _CLIENT, _CLIENT_SPEC = client, spec
+        return client
+    # The workers leave Ctrl-C to the driver; one pressed meanwhile is raised once the client is
+    # registered, so that the usual clean-up (close_client) ends this cluster too.
+    with _sigint_held():
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
-        with _sigint_ignored():  # the workers leave Ctrl-C to the driver
-            cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
-                                   dashboard_address=":0", memory_limit=runtime["memory_limit"],
-                                   env=dict(THREAD_ENV), silence_logs=50)
+        cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
+                               dashboard_address=":0", memory_limit=runtime["memory_limit"],
+                               env=dict(THREAD_ENV), silence_logs=50)
         client = Client(cluster)
         # Our own worker processes only: a remote scheduler's workers are not ours to end this way.
         client.run(exit_without_teardown_at_exit)
-    _CLIENT, _CLIENT_SPEC = client, spec
+        _CLIENT, _CLIENT_SPEC = client, spec
     return client
 
 
@@ -626,7 +649,7 @@ class _ChildTasks:
     Why: beside a keypoints thread (torch's import, then the network) the field and graph of the
     same drawing took 1.5× their time alone (the GIL and the interpreter between numpy calls), beside
     a keypoints process hardly more (stages/DECISIONS.md, engine). The child is spawned at once, with
-    SIGINT ignored (Ctrl-C is the driver's to report, as for dask's workers), and imports the
+    SIGINT blocked (Ctrl-C is the driver's to report, as for dask's workers), and imports the
     stages' code and preloads what they use (``configs``: each stage's config section, for its
     ``preload``) while the driver checks the code and runs prep.
     """
@@ -637,11 +660,17 @@ class _ChildTasks:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.lock = threading.Lock()
-        with _sigint_ignored():
-            self.proc = ctx.Process(target=_serve_tasks, args=(child, stages, configs or {}), daemon=True,
-                                    name="polyvec-" + "-".join(stages))
-            self.proc.start()
-        child.close()
+        self.proc = ctx.Process(target=_serve_tasks, args=(child, stages, configs or {}), daemon=True,
+                                name="polyvec-" + "-".join(stages))
+        try:
+            with _sigint_held():
+                self.proc.start()
+        except KeyboardInterrupt:   # pressed while it started: nobody else holds it to end it
+            self.proc.kill()
+            self.proc.join()
+            raise
+        finally:
+            child.close()
 
     def run(self, task: "Task", store_url: str, upstream: tuple) -> "TaskResult":
         """Run one task in the child; a lost child is this task's failure."""

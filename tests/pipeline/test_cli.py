@@ -384,6 +384,44 @@ def test_ctrl_c_prints_one_line(tmp_path):
     assert "Traceback" not in out
 
 
+@pytest.mark.slow
+def test_ctrl_c_while_the_local_cluster_starts_is_not_lost(tmp_path):
+    """Ctrl-C pressed while the dask workers start (the first ~1.5 s of a folder's run) stops the run:
+    SIGINT was ignored in that window so that the workers would inherit it, and the run went on to its
+    end; it is now held back and raised once the workers are up."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for k in range(4):
+        (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+    def children() -> list[str]:
+        return subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+
+    deadline = time.monotonic() + 120
+    # multiprocessing's resource tracker, then the nannies: the cluster is starting
+    while len(children()) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    assert not list(tmp_path.glob("artifacts/prep/*/*")), "the cluster was up before the test could interrupt it"
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == [err.strip()] and err.startswith("polyvec: interrupted — "), err
+    assert "Traceback" not in out + err
+    deadline = time.monotonic() + 10      # the workers' last exits take a moment, as after any run
+    while subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True).stdout and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True).stdout.split()
+
+
 def test_local_cluster_leaves_port_8787_alone(tmp_path, cli):
     """Another dask (here: a socket) holding the dashboard's default port 8787 causes no warning."""
     import socket
