@@ -354,34 +354,47 @@ def test_output_tree_mirrors_the_input_tree(tmp_path, cli):
     assert "wrote out/clean/kitten.svg, out/clean/kitten.json" in proc.stderr.replace("\n", "")
 
 
-@pytest.mark.slow
-def test_ctrl_c_prints_one_line(tmp_path):
-    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during a dask batch."""
-    import os
+def _folder_run_to_interrupt(tmp_path):
+    """``polyvec`` on a folder of 4 drawings on a local cluster, in its own process group, with the
+    default SIGINT disposition, as in a terminal (a suite started as a background job of a
+    non-interactive shell inherits SIGINT ignored, and Python then installs no handler for it)."""
     import signal
     import subprocess
     import sys
-    import time
 
     src = tmp_path / "in"
     src.mkdir()
     for k in range(4):
         (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
-    # The default SIGINT disposition, as in a terminal: a suite started as a background job of a
-    # non-interactive shell inherits SIGINT ignored, and Python then installs no handler for it.
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _interrupted_once(proc) -> None:
+    """Ctrl-C to the run's whole process group (as a terminal sends it): exit 130 and one line."""
+    import os
+    import signal
+
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == [err.strip()], err
+    assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
+    assert "Traceback" not in out + err
+
+
+@pytest.mark.slow
+def test_ctrl_c_prints_one_line(tmp_path):
+    """Ctrl-C during a dask batch."""
+    import time
+
+    proc = _folder_run_to_interrupt(tmp_path)
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob("artifacts/prep/*/*")) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.1)
     time.sleep(0.5)
-    os.killpg(proc.pid, signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert len(err.strip().splitlines()) == 1, err
-    assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
-    assert "Traceback" not in out
+    _interrupted_once(proc)
 
 
 @pytest.mark.slow
@@ -389,19 +402,10 @@ def test_ctrl_c_while_the_local_cluster_starts_is_not_lost(tmp_path):
     """Ctrl-C pressed while the dask workers start (the first ~1.5 s of a folder's run) stops the run:
     SIGINT was ignored in that window so that the workers would inherit it, and the run went on to its
     end; it is now held back and raised once the workers are up."""
-    import os
-    import signal
     import subprocess
-    import sys
     import time
 
-    src = tmp_path / "in"
-    src.mkdir()
-    for k in range(4):
-        (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = _folder_run_to_interrupt(tmp_path)
 
     def children() -> list[str]:
         return subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
@@ -411,11 +415,7 @@ def test_ctrl_c_while_the_local_cluster_starts_is_not_lost(tmp_path):
     while len(children()) < 2 and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.02)
     assert not list(tmp_path.glob("artifacts/prep/*/*")), "the cluster was up before the test could interrupt it"
-    os.killpg(proc.pid, signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert err.strip().splitlines() == [err.strip()] and err.startswith("polyvec: interrupted — "), err
-    assert "Traceback" not in out + err
+    _interrupted_once(proc)
     deadline = time.monotonic() + 10      # the workers' last exits take a moment, as after any run
     while subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True).stdout and time.monotonic() < deadline:
         time.sleep(0.1)
