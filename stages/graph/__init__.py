@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from stages.errors import InputError
 from stages.lazy import lazy_names
 
 STAGE_VERSION = "3"  # 3: narrow loop caps closed (ends.close_loop_caps)
@@ -26,6 +27,15 @@ class TraceConfig:
     merge_cos: float
     self_merge_lag: int
     tie: float
+
+    #: The tracing kernel keeps room for the longest curve one seed can add (2 · max_half_samples + 2
+    #: samples, 28 bytes each) before each seed; this bound keeps that room under 60 MB.
+    MAX_HALF_SAMPLES = 1_000_000
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.max_half_samples <= self.MAX_HALF_SAMPLES:
+            raise InputError(f"graph.trace.max_half_samples must be in [1, {self.MAX_HALF_SAMPLES}] "
+                             f"(samples of {self.step} px), got {self.max_half_samples}")
 
 
 @dataclass

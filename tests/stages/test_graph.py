@@ -391,6 +391,38 @@ def test_config_must_match_the_yaml_keys():
         graph.run(cfg, prep=p, field=f)
 
 
+@pytest.mark.parametrize("cap", [0, 2_000_000])
+def test_trace_length_cap_is_bounded(cap):
+    """The tracing kernel reserves room for 2 · max_half_samples samples per seed: a cap past
+    1,000,000 (100,000 px at 0.1 px) would reserve gigabytes, so it is refused in one line."""
+    p, f = _inputs("line")
+    cfg = _cfg("graph")
+    cfg["trace"]["max_half_samples"] = cap
+    with pytest.raises(InputError, match="graph.trace.max_half_samples must be in"):
+        graph.run(cfg, prep=p, field=f)
+
+
+def test_trace_does_not_depend_on_its_buffer_size():
+    """The kernel grows its sample buffers before a seed (not per step): from the smallest start,
+    through many growths, it traces exactly what a buffer that never grows traces."""
+    from stages.graph.trace import _trace_all
+
+    p, f = _inputs("line", angle=23.0, width=6.0)
+    t = _cfg("graph")["trace"]
+    band = np.ascontiguousarray(p["mask"])
+    c0 = np.where(band, f["c0"], 0).astype(np.complex128)
+    c2 = np.where(band, f["c2"], 0).astype(np.complex128)
+    root = f["roots"][..., 0]
+    mod = np.abs(root)
+    seed = np.where(band & (mod > 1e-12), root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
+    args = (c0, c2, band, np.ascontiguousarray(f["singular"]), seed, t["step"], 600, t["merge_distance"] ** 2,
+            t["merge_cos"], t["self_merge_lag"], t["tie"])
+    small, large = _trace_all(*args, 1), _trace_all(*args, 4_000_000)
+    assert len(small[0]) > 10_000      # the 1-sample start grew a dozen times
+    for a, b in zip(small, large):
+        np.testing.assert_array_equal(a, b)
+
+
 # --------------------------------------------------------------------------------------------------
 # Real drawing (shared data)
 # --------------------------------------------------------------------------------------------------
