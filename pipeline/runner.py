@@ -421,7 +421,8 @@ def _sigint_held():
             signal.sigwait({signal.SIGINT})
             pressed.append(signal.SIGINT)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        signal.signal(signal.SIGINT, handler)
+        # None: a handler not set from Python (embedding); Python's own is the sensible one back
+        signal.signal(signal.SIGINT, handler if handler is not None else signal.default_int_handler)
     if pressed and handler is not signal.SIG_IGN:
         raise KeyboardInterrupt
 
