@@ -103,9 +103,7 @@ def _cell_index(sx, sy, band):
         cell_start[c + 1] += 1
     for c in range(nb * SUB * SUB):
         cell_start[c + 1] += cell_start[c]
-    fill = np.empty(nb * SUB * SUB, np.int64)
-    for c in range(nb * SUB * SUB):
-        fill[c] = cell_start[c]
+    fill = cell_start[:-1].copy()   # the next free slot of each cell
     cell_samples = np.empty(n, np.int32)     # sample ids are int32 like the trace's lists
     for t in range(n):
         cell_samples[fill[cell[t]]] = t

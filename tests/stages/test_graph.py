@@ -402,25 +402,23 @@ def test_trace_length_cap_is_bounded(cap):
         graph.run(cfg, prep=p, field=f)
 
 
-def test_trace_does_not_depend_on_its_buffer_size():
+def test_trace_does_not_depend_on_its_buffer_size(monkeypatch):
     """The kernel grows its sample buffers before a seed (not per step): from the smallest start,
     through many growths, it traces exactly what a buffer that never grows traces."""
-    from stages.graph.trace import _trace_all
+    from stages.graph import trace
 
     p, f = _inputs("line", angle=23.0, width=6.0)
-    t = _cfg("graph")["trace"]
-    band = np.ascontiguousarray(p["mask"])
-    c0 = np.where(band, f["c0"], 0).astype(np.complex128)
-    c2 = np.where(band, f["c2"], 0).astype(np.complex128)
-    root = f["roots"][..., 0]
-    mod = np.abs(root)
-    seed = np.where(band & (mod > 1e-12), root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
-    args = (c0, c2, band, np.ascontiguousarray(f["singular"]), seed, t["step"], 600, t["merge_distance"] ** 2,
-            t["merge_cos"], t["self_merge_lag"], t["tie"])
-    small, large = _trace_all(*args, 1), _trace_all(*args, 4_000_000)
-    assert len(small[0]) > 10_000      # the 1-sample start grew a dozen times
-    for a, b in zip(small, large):
-        np.testing.assert_array_equal(a, b)
+    kw = dict(_cfg("graph")["trace"], max_half_samples=600)
+    kernel = trace._trace_all
+
+    def traced(cap):
+        monkeypatch.setattr(trace, "_trace_all", lambda *args: kernel(*args[:-1], cap))
+        return trace.trace_streamlines(f["c0"], f["c2"], p["mask"], f["singular"], f["roots"][..., 0], **kw)
+
+    small, large = traced(1), traced(4_000_000)
+    assert len(small.xy) > 10_000      # the 1-sample start grew a dozen times
+    for name in ("xy", "tangent", "curve", "start", "length", "end_reason"):
+        np.testing.assert_array_equal(getattr(small, name), getattr(large, name))
 
 
 # --------------------------------------------------------------------------------------------------
