@@ -126,6 +126,16 @@ def ancestors(name: str) -> set[str]:
     return out
 
 
+@lru_cache(maxsize=None)
+def height(name: str) -> int:
+    """Stages on the longest path from ``name`` to the end of the DAG, ``name`` included (export: 1).
+
+    The engine runs the stages with the most work still behind them first (:func:`pipeline.runner.priority`).
+    """
+    below = [s.name for s in STAGES if name in s.inputs]
+    return 1 + max((height(b) for b in below), default=0)
+
+
 def active_stages(until: str | None = None) -> list[StageSpec]:
     """Stages to run, in topological order.
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from pipeline import warmup
-from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage
+from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage, height
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
 
@@ -452,9 +452,16 @@ def get_client(runtime: dict):
     with _sigint_held():
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
-        cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
-                               dashboard_address=":0", memory_limit=runtime["memory_limit"],
-                               env=dict(THREAD_ENV), silence_logs=50)
+        import dask
+
+        # Saturation inf: every task goes to a worker once it is ready, so that the workers run the
+        # engine's priorities (:func:`priority`); dask's default queues root tasks (prep) on the
+        # scheduler and releases them only when a worker runs out of work. Our tasks return small
+        # records (the artifacts go to the store), so the queue's memory guard is not needed.
+        with dask.config.set({"distributed.scheduler.worker-saturation": float("inf")}):
+            cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", memory_limit=runtime["memory_limit"],
+                                   env=dict(THREAD_ENV), silence_logs=50)
         client = Client(cluster)
         # Our own worker processes only: a remote scheduler's workers are not ours to end this way.
         client.run(exit_without_teardown_at_exit)
@@ -806,6 +813,23 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
             child.join()
 
 
+#: The batch's last images whose tasks are run stage-first, all of them together (:func:`priority`).
+TAIL_IMAGES = 8
+
+
+def priority(stage: str, i: int, n: int) -> int:
+    """Scheduling priority (higher first) of image ``i``'s ``stage`` task in a batch of ``n`` images.
+
+    A task ranks by the stages still behind it (:func:`pipeline.registry.height`) less its image's
+    place in the batch: images start in order and overlap, but each image's long branches
+    (keypoints, field, graph) go before earlier images' short ends (select, export). Run image by
+    image, the batch ended on one image's chain with the other worker idle; the last
+    :data:`TAIL_IMAGES` images share one place, so the batch ends on short tasks of several
+    (stages/DECISIONS.md, engine).
+    """
+    return height(stage) - min(i, max(0, n - TAIL_IMAGES))
+
+
 def _run_dask(pending, store_url, batch, report, client) -> None:
     from distributed import as_completed
 
@@ -815,7 +839,7 @@ def _run_dask(pending, store_url, batch, report, client) -> None:
         for t in tasks:
             deps = [per_future[s] for s in BY_NAME[t.stage].inputs if s in per_future]
             fut = client.submit(execute, t, store_url, *deps, key=f"{t.stage}-{i}-{t.key[:16]}", pure=False,
-                                retries=0)
+                                retries=0, priority=priority(t.stage, i, len(pending)))
             per_future[t.stage] = fut
             futures[fut] = t
     for fut in as_completed(list(futures)):

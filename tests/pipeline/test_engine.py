@@ -69,6 +69,46 @@ def test_local_dask_cluster(tmp_path, images, compose_cfg):
     assert _statuses(batch)["field"] == ["computed", "computed"]
 
 
+def test_local_cluster_runs_the_stages_with_most_work_behind_them_first(tmp_path, compose_cfg):
+    """Dask follows the engine's priorities, root tasks included: on one worker, every image's prep (the
+    most stages behind it) runs before any field, where image after image would interleave them."""
+    import json
+
+    paths = []
+    for k in range(4):
+        p = tmp_path / f"line{k}.png"
+        p.write_bytes(synthetic.line(size=40 + 4 * k, width=3).png_bytes())
+        paths.append(p)
+    cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field", "runtime.cluster=local",
+                      "runtime.workers=1")
+    try:
+        batch = run_batch(paths, cfg)
+    finally:
+        close_client()
+    assert not batch.failed_images
+    started = {}
+    for m in (tmp_path / "store").glob("*/*/*/manifest.json"):
+        m = json.loads(m.read_text())
+        started.setdefault(m["stage"], []).append(m["written_at"] - m["duration_s"])
+    assert len(started["prep"]) == len(started["field"]) == 4
+    assert max(started["prep"]) < min(started["field"])
+
+
+def test_batch_priorities_start_images_in_order_and_end_on_short_tasks():
+    from pipeline.registry import BY_NAME, height
+    from pipeline.runner import TAIL_IMAGES, priority
+
+    assert height("export") == 1 and height("prep") == max(height(s) for s in BY_NAME)
+    assert all(height(s) > height(d) for d in BY_NAME for s in BY_NAME[d].inputs)
+    n = 40
+    assert priority("prep", 1, n) > priority("export", 0, n)       # the next image starts beside an ending one
+    assert priority("export", 0, n) > priority("prep", 10, n)      # ... but a far one waits
+    tail = [priority("graph", i, n) for i in range(n - TAIL_IMAGES, n)]
+    assert len(set(tail)) == 1                                     # the last images share one place
+    assert priority("keypoints", n - 1, n) > priority("flow", n - 2, n)   # the tail runs stage by stage
+    assert priority("prep", 0, 3) == priority("prep", 2, 3)               # a small batch is all tail
+
+
 def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, images, compose_cfg):
     """Once the batch is done, a local worker holding the stages' modules exits at once (os._exit after
     the exit handlers): an object that only the interpreter's teardown would collect is never collected."""
