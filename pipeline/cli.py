@@ -312,10 +312,12 @@ def announce_edits(images: list[Path], cfg: DictConfig, console) -> None:
 
 
 class _Progress:
-    """Images finished in this process (all jobs of a sweep), for the line printed on Ctrl-C."""
+    """Images finished and stage results stored in this process (all jobs of a sweep), for the line
+    printed on Ctrl-C: a batch runs the images side by side (:func:`pipeline.runner.priority`), so
+    much of an interrupted one is stored before its first image is done, and a resume reuses it."""
 
     def __init__(self):
-        self.done, self.total, self.last = 0, 0, None
+        self.done, self.total, self.last, self.stored = 0, 0, None, 0
 
     def start(self, n_images: int, last_stage: str | None) -> None:
         """A new job of ``n_images`` whose last stage is ``last_stage``."""
@@ -327,6 +329,7 @@ class _Progress:
         def wrapped(r: TaskResult) -> None:
             if r.stage == self.last:
                 self.done += 1
+            self.stored += r.status == "computed"
             report(r)
         return wrapped
 
@@ -552,7 +555,8 @@ class ExitCode:
 
     def interrupted(self) -> None:
         """Report Ctrl-C in one line, then shut dask down with stderr silenced and exit 130."""
-        done = f"{PROGRESS.done} of {PROGRESS.total} images done; " if PROGRESS.total else ""
+        done = (f"{PROGRESS.done} of {PROGRESS.total} images done, {PROGRESS.stored} stage results stored; "
+                if PROGRESS.total else "")
         print(f"{self.prog}: interrupted — {done}run the same command again to resume", file=sys.stderr,
               flush=True)
         # Worker processes and dask's shutdown report the interrupt too (tracebacks, "closing"

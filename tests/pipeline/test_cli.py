@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -380,8 +381,21 @@ def _interrupted_once(proc) -> None:
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert err.strip().splitlines() == [err.strip()], err
-    assert err.startswith("polyvec: interrupted — ") and "of 4 images done; run the same command again" in err
+    assert err.startswith("polyvec: interrupted — ")
+    assert re.search(r"\d of 4 images done, \d+ stage results stored; run the same command again", err), err
     assert "Traceback" not in out + err
+
+
+def test_the_ctrl_c_line_counts_images_done_and_stage_results_stored():
+    from pipeline.cli import _Progress
+    from pipeline.runner import TaskResult
+
+    progress, seen = _Progress(), []
+    progress.start(3, "export")
+    report = progress.counting(seen.append)
+    for stage, status in (("prep", "computed"), ("field", "cached"), ("export", "computed"), ("prep", "failed")):
+        report(TaskResult("a.png", stage, "k", status))
+    assert (progress.done, progress.total, progress.stored, len(seen)) == (1, 3, 2, 4)
 
 
 @pytest.mark.slow
