@@ -215,7 +215,10 @@ def _pin_threads(alone: bool = False) -> None:
 # Bounded by count and by array bytes, so a batch of large scans cannot pile up gigabytes per worker.
 _MEMO: "OrderedDict[tuple[str, str], Any]" = OrderedDict()
 _MEMO_LOCK = threading.Lock()  # the in-process scheduler runs two tasks at once (threads)
-MEMO_SIZE = 12
+# 48, not 12: a batch runs several images' stages side by side (:func:`priority`), and with 12 their
+# inputs were read back from zarr (stage seconds +3 %, stages/DECISIONS.md). 48 artifacts of 512-px
+# drawings hold ~200 MB of arrays (~33 MB per image), under the byte bound, which binds for larger ones.
+MEMO_SIZE = 48
 MEMO_BYTES = 256 * 2**20
 
 
