@@ -436,6 +436,7 @@ def get_client(runtime: dict):
     The client is kept for the life of the process, so Hydra multirun jobs share one cluster.
     """
     global _CLIENT, _CLIENT_SPEC
+    import dask
     from distributed import Client, LocalCluster
 
     address = runtime["scheduler_address"]
@@ -455,8 +456,6 @@ def get_client(runtime: dict):
     with _sigint_held():
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
-        import dask
-
         # Saturation inf: every task goes to a worker once it is ready, so that the workers run the
         # engine's priorities (:func:`priority`); dask's default queues root tasks (prep) on the
         # scheduler and releases them only when a worker runs out of work. Our tasks return small
