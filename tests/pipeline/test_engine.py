@@ -72,7 +72,7 @@ def test_local_dask_cluster(tmp_path, images, compose_cfg):
 def test_local_cluster_runs_the_stages_with_most_work_behind_them_first(tmp_path, compose_cfg):
     """Dask follows the engine's priorities, root tasks included: on one worker, every image's prep (the
     most stages behind it) runs before any field, where image after image would interleave them."""
-    import json
+    from pipeline.store import ArtifactStore
 
     paths = []
     for k in range(4):
@@ -86,10 +86,13 @@ def test_local_cluster_runs_the_stages_with_most_work_behind_them_first(tmp_path
     finally:
         close_client()
     assert not batch.failed_images
-    started = {}
-    for m in (tmp_path / "store").glob("*/*/*/manifest.json"):
-        m = json.loads(m.read_text())
-        started.setdefault(m["stage"], []).append(m["written_at"] - m["duration_s"])
+    store = ArtifactStore(tmp_path / "store")
+
+    def started_at(r):
+        m = store.manifest(r.stage, r.key)
+        return m["written_at"] - m["duration_s"]
+
+    started = {stage: [started_at(per[stage]) for per in batch.results.values()] for stage in ("prep", "field")}
     assert len(started["prep"]) == len(started["field"]) == 4
     assert max(started["prep"]) < min(started["field"])
 
