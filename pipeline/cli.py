@@ -20,8 +20,8 @@ from typing import Callable
 from omegaconf import DictConfig
 
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
-from pipeline.runner import (BatchResult, ClusterError, TaskResult, quiet_full_collections, run_batch, validated_stages,
-                             write_outputs)
+from pipeline.runner import (BatchResult, ClusterError, TaskResult, quiet_full_collections, reuse_freed_memory,
+                             run_batch, validated_stages, write_outputs)
 from pipeline.store import ArtifactStore
 from stages.errors import InputError
 
@@ -633,6 +633,7 @@ def exit_now(code: object) -> None:
 def main() -> None:
     """Console entry point; exits 1 when any image failed, 2 on a usage error, 130 on Ctrl-C."""
     quiet_full_collections()   # before the stages' imports and tasks, which run in this process
+    reuse_freed_memory()
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         try:
             print(HELP, flush=True)

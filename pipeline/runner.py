@@ -187,6 +187,41 @@ def quiet_full_collections() -> None:
     gc.set_threshold(young, middle, FULL_COLLECTION_EVERY)
 
 
+#: glibc's malloc serves a request of this many bytes or more with a fresh ``mmap`` and unmaps it on
+#: ``free``, so the next array of that size is faulted in again page by page (the kernel zeroing
+#: each page). Its threshold adapts from 128 KiB up to 32 MiB — unless a trim threshold is set, as dask
+#: does in its workers (``MALLOC_TRIM_THRESHOLD_=65536``), which freezes it at 128 KiB: a 2-worker batch
+#: of 8 drawings spent 3.5–4.8 of each worker's 13–14 CPU seconds in the kernel, 0.7–1.2 with this
+#: (stages/DECISIONS.md, engine). 32 MiB, the largest glibc accepts on 64-bit, keeps a 2-Mpx
+#: drawing's float64 arrays (16 MiB) in the heap.
+HEAP_MMAP_BYTES = 32 * 2**20
+#: Free memory at the top of the heap kept for the next array instead of given back: as much as the
+#: largest array the heap serves (a worker's peak RSS on 24 drawings 707–728 → 823–872 MB; 256 MiB
+#: gave 910 MB for no measurable time).
+HEAP_TRIM_BYTES = 32 * 2**20
+_HEAP_TUNED = False
+
+
+def reuse_freed_memory() -> None:
+    """Make glibc's malloc keep freed arrays' memory for the next ones (:data:`HEAP_MMAP_BYTES`,
+    :data:`HEAP_TRIM_BYTES`) in this process. Once per process; nothing where the C library has no
+    ``mallopt`` (not glibc)."""
+    global _HEAP_TUNED
+    if _HEAP_TUNED:
+        return
+    _HEAP_TUNED = True
+    import ctypes
+
+    try:  # the symbols already loaded into this process, the C library's among them
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    m_trim_threshold, m_mmap_threshold = -1, -3      # glibc's <malloc.h>
+    mallopt(m_mmap_threshold, HEAP_MMAP_BYTES)
+    mallopt(m_trim_threshold, HEAP_TRIM_BYTES)
+
+
 def _pin_threads(alone: bool = False) -> None:
     """One thread per task for torch and numba (worker processes also get THREAD_ENV at spawn).
 
@@ -299,6 +334,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult, alone: bool = Fal
         return TaskResult(task.image, task.stage, task.key, "cached")
     _pin_threads(alone)
     quiet_full_collections()      # a dask worker or the keypoints child: this process runs stages
+    reuse_freed_memory()
     t0 = time.perf_counter()
     try:
         spec = BY_NAME[task.stage]
