@@ -214,7 +214,7 @@ def reuse_freed_memory() -> None:
 
     try:  # the symbols already loaded into this process, the C library's among them
         mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # no mallopt (macOS), no CDLL(None) (Windows)
         return
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     m_trim_threshold, m_mmap_threshold = -1, -3      # glibc's <malloc.h>
