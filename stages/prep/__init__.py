@@ -12,11 +12,12 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "8"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "9"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
-#                        lighting is divided out (prep.lighting)
+#                        lighting is divided out (prep.lighting); 9: light strokes on dark paper are
+#                        inverted (prep.invert)
 
 
 @dataclass
@@ -88,10 +89,15 @@ class PrepConfig:
     paper_grain_sigmas: float
     grain_smoothing: float
     max_ink_fraction: float
+    invert: str
     lighting: LightingConfig
     contrast: ContrastConfig
     supersample: SupersampleConfig
     downsample: DownsampleConfig
+
+    def __post_init__(self) -> None:
+        if self.invert not in ("auto", "always", "never"):
+            raise InputError(f"prep.invert must be 'auto', 'always' or 'never', got {self.invert!r}")
 
 
 def internal_scale(data: dict) -> float:

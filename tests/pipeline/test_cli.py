@@ -188,6 +188,31 @@ def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(t
     assert len(curves) == 1 and np.asarray(curves[0]["points"])[:, 1].min() > 15   # page 1's line only
 
 
+def test_chalk_on_a_blackboard_gives_the_curves_of_ink_on_paper(tmp_path, cli):
+    """``prep.invert``: light strokes on dark paper (a photographed blackboard, a negative) give the
+    curves of the same drawing in ink on white, and the console says the image was inverted."""
+    import json
+
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    img = Image.new("L", (160, 120), 255)
+    d = ImageDraw.Draw(img)
+    d.ellipse([20, 20, 80, 80], outline=0, width=3)
+    d.line([(100, 20), (140, 100)], fill=0, width=3)
+    (tmp_path / "in").mkdir()
+    img.save(tmp_path / "in" / "paper.png")
+    Image.fromarray((40 + (255 - np.asarray(img)) * 0.7).astype(np.uint8)).save(tmp_path / "in" / "board.png")
+    proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "board.png: prep: light strokes on dark paper" in proc.stderr and "paper.png: prep: light" not in proc.stderr
+    board, paper = (json.loads((tmp_path / "out" / f"{n}.json").read_text())["curves"] for n in ("board", "paper"))
+    assert len(board) == len(paper) == 2
+    for a, b in zip(sorted(board, key=lambda c: c["points"][0]), sorted(paper, key=lambda c: c["points"][0])):
+        pa, pb = np.asarray(a["points"]), np.asarray(b["points"])
+        assert np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1).max() < 1.0   # the same curve
+
+
 @pytest.mark.slow
 def test_a_photographed_sketch_with_a_shadow_comes_out_as_if_evenly_lit(tmp_path, cli):
     """``prep.lighting``: pencil strokes under a 40 % shadow give the curves of the evenly lit page

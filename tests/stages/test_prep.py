@@ -122,6 +122,24 @@ def test_all_white_and_all_black(value, message):
         prep.run(CFG, data)
 
 
+def test_light_strokes_on_dark_paper_are_inverted_and_said(drawing):
+    """Chalk on a blackboard, a negative: the same band as the drawing on white, with a note; with
+    ``invert: never`` the dark page is read as it is (no stroke stands out of it)."""
+    g8 = np.round(drawing.grey * 255).astype(np.uint8)
+    normal = prep.run(CFG, _encode(Image.fromarray(g8, "L"), "PNG"))
+    negative = _encode(Image.fromarray(255 - g8, "L"), "PNG")
+    inverted = prep.run(CFG, negative)
+    np.testing.assert_array_equal(inverted.arrays["mask"], normal.arrays["mask"])
+    assert any("light strokes on dark paper" in n and "inverted" in n for n in inverted.notes)
+    assert not any("invert" in n for n in normal.notes)
+    forced = prep.run({**CFG, "invert": "always"}, negative)
+    np.testing.assert_array_equal(forced.arrays["mask"], normal.arrays["mask"])
+    with pytest.raises(InputError):
+        prep.run({**CFG, "invert": "never"}, negative)
+    with pytest.raises(InputError, match="prep.invert"):
+        prep.run({**CFG, "invert": "yes"}, negative)
+
+
 def test_huge_image_is_refused_before_decoding():
     data = _encode(Image.fromarray(np.full((400, 500), 255, np.uint8), "L"), "PNG")
     with pytest.raises(InputError, match="too large"):
