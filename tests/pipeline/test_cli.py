@@ -188,11 +188,23 @@ def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(t
     assert len(curves) == 1 and np.asarray(curves[0]["points"])[:, 1].min() > 15   # page 1's line only
 
 
+def _assert_the_same_curves(out, name, twin, count: int, tolerance_px: float) -> None:
+    """``out/<name>.json`` and ``out/<twin>.json`` hold ``count`` curves each, pairwise the same curve:
+    every point of one within ``tolerance_px`` of the other (paired by their first points)."""
+    import json
+
+    import numpy as np
+
+    curves = [json.loads((out / f"{n}.json").read_text())["curves"] for n in (name, twin)]
+    assert len(curves[0]) == len(curves[1]) == count
+    for a, b in zip(*(sorted(c, key=lambda c: c["points"][0]) for c in curves)):
+        pa, pb = np.asarray(a["points"]), np.asarray(b["points"])
+        assert np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1).max() < tolerance_px
+
+
 def test_chalk_on_a_blackboard_gives_the_curves_of_ink_on_paper(tmp_path, cli):
     """``prep.invert``: light strokes on dark paper (a photographed blackboard, a negative) give the
     curves of the same drawing in ink on white, and the console says the image was inverted."""
-    import json
-
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -206,19 +218,13 @@ def test_chalk_on_a_blackboard_gives_the_curves_of_ink_on_paper(tmp_path, cli):
     proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "board.png: prep: light strokes on dark paper" in proc.stderr and "paper.png: prep: light" not in proc.stderr
-    board, paper = (json.loads((tmp_path / "out" / f"{n}.json").read_text())["curves"] for n in ("board", "paper"))
-    assert len(board) == len(paper) == 2
-    for a, b in zip(sorted(board, key=lambda c: c["points"][0]), sorted(paper, key=lambda c: c["points"][0])):
-        pa, pb = np.asarray(a["points"]), np.asarray(b["points"])
-        assert np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1).max() < 1.0   # the same curve
+    _assert_the_same_curves(tmp_path / "out", "board", "paper", count=2, tolerance_px=1.0)
 
 
 @pytest.mark.slow
 def test_a_photographed_sketch_with_a_shadow_comes_out_as_if_evenly_lit(tmp_path, cli):
     """``prep.lighting``: pencil strokes under a 40 % shadow give the curves of the evenly lit page
     (a loop, a zigzag joined through its corners, a line), and the console says the lighting was evened."""
-    import json
-
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -238,11 +244,7 @@ def test_a_photographed_sketch_with_a_shadow_comes_out_as_if_evenly_lit(tmp_path
     proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "photo.png: prep: uneven lighting" in proc.stderr and "scan.png: prep: uneven" not in proc.stderr
-    shadowed, even = (json.loads((tmp_path / "out" / f"{n}.json").read_text())["curves"] for n in ("photo", "scan"))
-    assert len(shadowed) == len(even) == 3
-    for a, b in zip(sorted(shadowed, key=lambda c: c["points"][0]), sorted(even, key=lambda c: c["points"][0])):
-        pa, pb = np.asarray(a["points"]), np.asarray(b["points"])
-        assert np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1).max() < 1.5   # the same curve
+    _assert_the_same_curves(tmp_path / "out", "photo", "scan", count=3, tolerance_px=1.5)
 
 
 # What only computing needs: over a second of start-up that a run whose artifacts are all stored never pays.
