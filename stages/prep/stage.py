@@ -12,7 +12,9 @@ Choices made on purpose
   of every validation, realvec_dev and bundled drawing is at 0.82 or lighter, and a page darker than
   mid-grey has more ink than paper, which is no line drawing either way.
 * **Alpha** is composited over white (the authors' detector ignores alpha, which their issue #7
-  traces to blank predictions on transparent PNGs).
+  traces to blank predictions on transparent PNGs) — over black when the opaque strokes on a mostly
+  transparent page are lighter than mid-grey (white line art for a dark background), which the
+  inversion above then turns into ink on paper.
 * **Uneven lighting is divided out** (``lighting``; not in the references): a photographed drawing
   or a scan with a shadow has paper from white to mid-grey, and one threshold then took the shadow
   for ink or the faint strokes for paper (a rough pencil bird under a 33 % shadow: "no ink stands
@@ -102,7 +104,8 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
     Returns
     -------
     grey : numpy.ndarray
-        float64 (H, W) in [0, 1], 1 = white; alpha composited over white.
+        float64 (H, W) in [0, 1], 1 = white; alpha composited over white (light strokes on a
+        transparent page: over black, see :func:`_backdrop`).
     mode : str
         The source image mode (e.g. ``"RGBA"``, ``"I;16"``).
     notes : list of str
@@ -151,7 +154,7 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
 
 
 def _to_grey(img) -> np.ndarray:
-    """Grey levels in [0, 1] from any PIL mode, alpha composited over white."""
+    """Grey levels in [0, 1] from any PIL mode, alpha composited over white (or black: :func:`_backdrop`)."""
     mode = img.mode
     if mode == "P":
         img = img.convert("RGBA" if "transparency" in img.info else "RGB")
@@ -166,14 +169,24 @@ def _to_grey(img) -> np.ndarray:
         return np.asarray(img, dtype=np.float64)
     if mode in ("LA", "RGBA", "PA", "La", "RGBa"):
         rgba = np.asarray(img.convert("RGBA"), dtype=np.float64) / 255.0
-        alpha = rgba[..., 3:4]
-        rgb = rgba[..., :3] * alpha + (1.0 - alpha)
-        return rgb @ np.array([0.299, 0.587, 0.114])
+        alpha = rgba[..., 3]
+        lum = rgba[..., :3] @ np.array([0.299, 0.587, 0.114])
+        return lum * alpha + _backdrop(lum, alpha) * (1.0 - alpha)
     if mode != "L":
         img = img.convert("RGB")
         rgb = np.asarray(img, dtype=np.float64) / 255.0
         return rgb @ np.array([0.299, 0.587, 0.114])
     return np.asarray(img, dtype=np.float64) / 255.0
+
+
+def _backdrop(lum: np.ndarray, alpha: np.ndarray) -> float:
+    """The grey a transparent page is read over: white, unless its opaque part — mostly transparent
+    around it — is lighter than mid-grey (white line art made for a dark background), which would
+    vanish on white: then black, and ``prep.invert`` turns the page over."""
+    covered = float(alpha.sum())
+    if covered == 0.0 or covered >= 0.5 * alpha.size:
+        return 1.0
+    return 0.0 if float((lum * alpha).sum()) / covered > 0.5 else 1.0
 
 
 #: The darkest shade of the paper :func:`flatten_lighting` divides out, relative to the brightest paper;

@@ -65,6 +65,19 @@ def test_alpha_is_composited_over_white(drawing):
     assert out.data["mode"] == "RGBA"
 
 
+def test_white_line_art_on_a_transparent_page_is_read_as_ink(drawing):
+    """White strokes on a transparent page (line art for a dark background) would vanish over white:
+    they give the band of the same strokes drawn black, with the inversion said."""
+    g8 = np.round(drawing.grey * 255).astype(np.uint8)
+    white_art = np.zeros(g8.shape + (4,), np.uint8)
+    white_art[..., :3] = 255
+    white_art[..., 3] = 255 - g8
+    out = prep.run(CFG, _encode(Image.fromarray(white_art, "RGBA"), "PNG"))
+    ref = prep.run(CFG, _variants(drawing.grey)["png-rgba"])
+    np.testing.assert_array_equal(out.arrays["mask"], ref.arrays["mask"])
+    assert any("inverted" in n for n in out.notes) and not any("inverted" in n for n in ref.notes)
+
+
 def test_faint_pencil_is_stretched_to_the_same_band(drawing):
     faint = 1 - 0.3 * (1 - drawing.grey)  # light grey strokes, never darker than 0.7
     ref = prep.run(CFG, _variants(drawing.grey)["png-grey"])
