@@ -17,7 +17,7 @@ STAGE_VERSION = "9"  # 2: paper-white pixels repaired only as one-pixel pinholes
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
 #                        lighting is divided out (prep.lighting); 9: light strokes on dark paper are
-#                        inverted (prep.invert)
+#                        inverted (prep.invert), white line art on a transparent page read over black
 
 
 @dataclass
