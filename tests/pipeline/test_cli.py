@@ -203,8 +203,9 @@ def _assert_the_same_curves(out, name, twin, count: int, tolerance_px: float) ->
 
 
 def test_chalk_on_a_blackboard_gives_the_curves_of_ink_on_paper(tmp_path, cli):
-    """``prep.invert``: light strokes on dark paper (a photographed blackboard, a negative) give the
-    curves of the same drawing in ink on white, and the console says the image was inverted."""
+    """``prep.invert``: light strokes on dark paper (a photographed blackboard, a negative) and white
+    line art on a transparent page give the curves of the same drawing in ink on white, and the console
+    says the image was inverted."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -215,10 +216,15 @@ def test_chalk_on_a_blackboard_gives_the_curves_of_ink_on_paper(tmp_path, cli):
     (tmp_path / "in").mkdir()
     img.save(tmp_path / "in" / "paper.png")
     Image.fromarray((40 + (255 - np.asarray(img)) * 0.7).astype(np.uint8)).save(tmp_path / "in" / "board.png")
+    art = np.full((120, 160, 4), 255, np.uint8)
+    art[..., 3] = 255 - np.asarray(img)
+    Image.fromarray(art, "RGBA").save(tmp_path / "in" / "lineart.png")
     proc = cli("in", "runtime.cluster=sync", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "board.png: prep: light strokes on dark paper" in proc.stderr and "paper.png: prep: light" not in proc.stderr
+    assert "lineart.png: prep: light strokes on dark paper" in proc.stderr
     _assert_the_same_curves(tmp_path / "out", "board", "paper", count=2, tolerance_px=1.0)
+    _assert_the_same_curves(tmp_path / "out", "lineart", "paper", count=2, tolerance_px=1.0)
 
 
 @pytest.mark.slow
