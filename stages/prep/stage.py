@@ -83,8 +83,9 @@ from stages.errors import InputError
 from stages.prep import PrepConfig
 
 _EIGHT = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]])
-#: ``invert: auto`` turns the grey over when the paper level (the median grey) is below this.
-DARK_PAPER = 0.5
+#: Mid-grey: ``invert: auto`` turns the grey over when the paper level (the median grey) is darker,
+#: and a transparent page whose strokes are lighter is read over black (:func:`_backdrop`).
+MID_GREY = 0.5
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
@@ -186,7 +187,7 @@ def _backdrop(lum: np.ndarray, alpha: np.ndarray) -> float:
     covered = float(alpha.sum())
     if covered == 0.0 or covered >= 0.5 * alpha.size:
         return 1.0
-    return 0.0 if float((lum * alpha).sum()) / covered > 0.5 else 1.0
+    return 0.0 if float((lum * alpha).sum()) / covered > MID_GREY else 1.0
 
 
 #: The darkest shade of the paper :func:`flatten_lighting` divides out, relative to the brightest paper;
@@ -397,7 +398,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     notes: list[str] = list(decode_notes)
     if c.invert != "never":
         level = paper_statistics(grey)[0]
-        if c.invert == "always" or level < DARK_PAPER:
+        if c.invert == "always" or level < MID_GREY:
             grey = 1.0 - grey
             notes.append(f"light strokes on dark paper (paper level {level:.2f}): inverted (prep.invert)"
                          if c.invert == "auto" else "inverted (prep.invert=always)")

@@ -191,8 +191,6 @@ def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(t
 def _assert_the_same_curves(out, name, twin, count: int, tolerance_px: float) -> None:
     """``out/<name>.json`` and ``out/<twin>.json`` hold ``count`` curves each, pairwise the same curve:
     every point of one within ``tolerance_px`` of the other (paired by their first points)."""
-    import json
-
     import numpy as np
 
     curves = [json.loads((out / f"{n}.json").read_text())["curves"] for n in (name, twin)]
