@@ -13,7 +13,7 @@ import torch
 
 from pipeline.train import compose_plain
 from stages.keypoints.training import category_split, draw_vector, stroke_count_cdf, train, vector_pool
-from stages.keypoints.training.data import stroke_count_power
+from stages.keypoints.training.data import compose_settings, compose_strokes, stroke_count_power
 from stages.keypoints.training.generator import drawing_from_strokes
 from stages.keypoints.training.human_strokes import read_stroke3
 from tests.conftest import train_configs
@@ -103,6 +103,50 @@ def test_busy_drawings_are_drawn_by_their_stroke_count():
     assert busy_share(stroke_count_cdf(pool["ndjson"], 1.0)) > 0.8            # 9 of 10 strokes
     with pytest.raises(ValueError, match="stroke_count_power must be >= 0"):
         stroke_count_power({"stroke_count_power": -1.0})
+
+
+def test_a_composed_drawing_lays_a_smaller_turned_drawing_over_the_first():
+    """``train.vector.compose_prob``: a second drawing, scaled into ``compose_scale`` of the canvas and
+    turned, is laid over the first; the labels see both, so their strokes' crossings are junctions."""
+    t = np.linspace(0, 1, 20)[:, None]
+    bar = [np.hstack([10 + 300 * t, 60 + 0 * t])]                 # one horizontal stroke
+    cross = [np.hstack([0 * t, 100 * t]), np.hstack([-50 + 100 * t, 50 + 0 * t])]   # a plus sign
+    size = 200
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        strokes = compose_strokes(rng, bar, cross, size, (0.5, 0.5))
+        assert len(strokes) == 3
+        assert np.ptp(strokes[0][:, 0]) == pytest.approx(size - 32)   # the first, fitted to the canvas
+        over = np.concatenate(strokes[1:])
+        # the plus sign fills a 100-px square (12.5-px margins): its arms stay 75 px long, at right angles
+        assert np.linalg.norm(strokes[1][-1] - strokes[1][0]) == pytest.approx(75)
+        d1, d2 = strokes[1][-1] - strokes[1][0], strokes[2][-1] - strokes[2][0]
+        assert abs(d1 @ d2) < 1e-6
+        assert (over.mean(0) >= 50 - 1e-6).all() and (over.mean(0) <= 150 + 1e-6).all()
+    # over many draws the angle turns (not always upright) and the position moves
+    angles = {round(float(np.degrees(np.arctan2(*(s[1][-1] - s[1][0])))) % 90)
+              for s in (compose_strokes(np.random.default_rng(k), bar, cross, size, (0.5, 0.5)) for k in range(20))}
+    assert len(angles) > 10
+    # through draw_vector: every Quick, Draw! draw is composed at probability 1, none at 0
+    pool = {"ndjson": [bar, cross], "stroke3": []}
+    generator, rules = train_configs()
+    rng = np.random.default_rng(1)
+    counts = [len(draw_vector(rng, pool, {"size": [96, 96], "compose_prob": 1.0}, generator, rules).strokes)
+              for _ in range(8)]
+    assert min(counts) >= 2
+    counts = [len(draw_vector(rng, pool, {"size": [96, 96], "compose_prob": 0.0}, generator, rules).strokes)
+              for _ in range(8)]
+    assert max(counts) <= 2
+
+
+def test_compose_settings_are_checked():
+    assert compose_settings({}) == (0.0, (0.4, 0.7))
+    assert compose_settings({"compose_prob": 0.3, "compose_scale": [0.5, 1.0]}) == (0.3, (0.5, 1.0))
+    with pytest.raises(ValueError, match="compose_prob must be within"):
+        compose_settings({"compose_prob": 1.5})
+    for bad in ([0.8, 0.5], [0.0, 0.5], [0.5, 1.2]):
+        with pytest.raises(ValueError, match="compose_scale must be"):
+            compose_settings({"compose_scale": bad})
 
 
 def test_thin_aliased_style_is_thin_and_labels_no_corner_on_a_circle():
@@ -265,7 +309,8 @@ def test_a_bad_training_value_is_one_error_line(tmp_path):
     import sys
 
     for bad, line in (("train.cpu_amp=sometimes", "train.cpu_amp must be true, false or auto, got 'sometimes'"),
-                      ("train.vector.stroke_count_power=-1", "train.vector.stroke_count_power must be >= 0, got -1.0")):
+                      ("train.vector.stroke_count_power=-1", "train.vector.stroke_count_power must be >= 0, got -1.0"),
+                      ("train.vector.compose_prob=2", "train.vector.compose_prob must be within [0, 1], got 2.0")):
         proc = subprocess.run([sys.executable, "-m", "pipeline.train", "--plain", str(CONF), bad,
                                f"train.out_dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True,
                               timeout=120)

@@ -254,24 +254,69 @@ def stroke_count_cdf(drawings: list[list[np.ndarray]], power: float) -> np.ndarr
     return np.cumsum(np.array([len(d) for d in drawings], float) ** power)
 
 
+def compose_settings(vcfg: dict) -> tuple[float, tuple[float, float]]:
+    """``train.vector.compose_prob`` and ``compose_scale`` (0 and (0.4, 0.7) when absent), checked.
+
+    A probability outside [0, 1] or a scale range outside (0, 1] is an InputError.
+    """
+    prob = float(vcfg.get("compose_prob", 0.0))
+    if not 0.0 <= prob <= 1.0:
+        raise InputError(f"train.vector.compose_prob must be within [0, 1], got {prob}")
+    lo, hi = (float(v) for v in vcfg.get("compose_scale", (0.4, 0.7)))
+    if not 0.0 < lo <= hi <= 1.0:
+        raise InputError(f"train.vector.compose_scale must be [lo, hi] with 0 < lo <= hi <= 1, got {[lo, hi]}")
+    return prob, (lo, hi)
+
+
 def draw_vector(rng: np.random.Generator, pool: dict, vcfg: dict, gcfg: GeneratorConfig, rules: LabelRules,
                 ndjson_cdf: np.ndarray | None = None):
     """One styled, labelled rendering of a random drawing of ``pool`` (None when the pool is empty).
 
     A share ``stroke3_prob`` of the draws come from the stroke-3 symbols (on a ``stroke3_size``
     canvas: they are single characters), the rest from the Quick, Draw! drawings (``size``), uniformly
-    or by the cumulative weights ``ndjson_cdf`` (:func:`stroke_count_cdf`).
+    or by the cumulative weights ``ndjson_cdf`` (:func:`stroke_count_cdf`). A share ``compose_prob``
+    of the Quick, Draw! draws get a second drawing laid over them (:func:`compose_strokes`).
     """
     nd, s3 = pool.get("ndjson") or [], pool.get("stroke3") or []
     if not nd and not s3:
         return None
     source = "stroke3" if s3 and (not nd or rng.random() < float(vcfg.get("stroke3_prob", 0.0))) else "ndjson"
     drawings = pool[source]
-    if source == "ndjson" and ndjson_cdf is not None:
-        k = min(int(np.searchsorted(ndjson_cdf, rng.random() * ndjson_cdf[-1], side="right")), len(drawings) - 1)
-    else:
-        k = rng.integers(len(drawings))
+
+    def pick() -> int:
+        if source == "ndjson" and ndjson_cdf is not None:
+            return min(int(np.searchsorted(ndjson_cdf, rng.random() * ndjson_cdf[-1], side="right")),
+                       len(drawings) - 1)
+        return int(rng.integers(len(drawings)))
+
+    k = pick()
+    prob, scale = compose_settings(vcfg)
+    # The draw for composing is made only when it can happen, so that compose_prob 0 keeps the old stream.
+    if source == "ndjson" and prob > 0 and rng.random() < prob:
+        lo, hi = (int(v) for v in _canvas(vcfg, source))
+        size = int(rng.integers(lo, hi + 1))
+        strokes = compose_strokes(rng, drawings[k], drawings[pick()], size, scale)
+        return drawing_from_strokes(rng, strokes, (size, size), gcfg, rules)
     return render_vector(rng, drawings[k], _canvas(vcfg, source), gcfg, rules)
+
+
+def compose_strokes(rng: np.random.Generator, first: list[np.ndarray], second: list[np.ndarray], size: int,
+                    scale: tuple[float, float]) -> list[np.ndarray]:
+    """``first`` fitted to a ``size`` canvas with ``second`` laid over it, smaller, turned and moved.
+
+    The second drawing fills a square of side ``scale`` × ``size`` (uniform in the range), turned by a
+    uniform angle about its centre, which lies uniformly where that square stays on the canvas. Its
+    strokes cross and touch the first drawing's at places and angles no single drawing has, so a
+    drawing of either category teaches junctions between unrelated strokes — the busy drawings'
+    knots — from the same 8 k human drawings (the label rules then see all strokes together).
+    """
+    base = fit_strokes(first, size)
+    side = max(float(rng.uniform(*scale)) * size, 8.0)
+    over = fit_strokes(second, int(round(side)), margin=min(16.0, side / 8))
+    a = rng.uniform(0.0, 2 * np.pi)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    centre = rng.uniform(side / 2, size - side / 2, 2)
+    return base + [(s - side / 2) @ rot.T + centre for s in over]
 
 
 def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_range, gcfg: GeneratorConfig,

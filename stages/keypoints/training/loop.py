@@ -19,7 +19,8 @@ from stages.errors import InputError
 from stages.evaluate.keypoints import MatchResult, match_keypoints
 from stages.keypoints.inference import find_keypoints, use_bf16
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
-from stages.keypoints.training.data import DrawingStream, prepare_sample, stroke_count_power, validation_set
+from stages.keypoints.training.data import (DrawingStream, compose_settings, prepare_sample, stroke_count_power,
+                                            validation_set)
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
 from stages.keypoints.training.targets import class_cross_entropy, junction_weighted_band, keypoint_loss
@@ -174,6 +175,7 @@ def train(cfg: dict) -> dict:
     tc = cfg["train"]
     cpu_bf16 = cpu_autocast(tc["cpu_amp"])    # checked before anything is written
     stroke_count_power(tc.get("vector") or {})
+    compose_settings(tc.get("vector") or {})
     out = Path(tc["out_dir"])
     out.mkdir(parents=True, exist_ok=True)
     seed = int(tc["seed"])
