@@ -132,7 +132,8 @@ def test_type_classifier_training_smoke(tmp_path):
     cfg = compose_plain(CONF, [f"train.out_dir={tmp_path}", "train.type_classifier.drawings=4",
                                "train.type_classifier.val_drawings=2", "train.type_classifier.epochs=20",
                                f"train.vector.files=[{ndjson}]", "train.vector.holdout=0",
-                               "train.vector.stroke3=[]", "train.vector.skip=2", "train.vector.size=[96,128]"])
+                               "train.vector.stroke3=[]", "train.vector.skip=2", "train.vector.size=[96,128]",
+                               "train.type_classifier.vector_drawings=null"])   # the one drawing left, `renders` times
     rec = train_type_classifier(cfg)
     assert rec["keypoints"] > 0 and sum(rec["class_counts"]) == rec["keypoints"]
     assert rec["vector_files"] == ["doodles.ndjson"]
