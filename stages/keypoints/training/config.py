@@ -112,7 +112,7 @@ class VectorConfig:
     renders: int
     size: list[int]
     stroke_count_power: float     # detector training: Quick, Draw! draws weighted by strokes^power (0 = uniform)
-    compose_prob: float           # detector training: share of Quick, Draw! draws with a second drawing laid over
+    compose_prob: float           # share of Quick, Draw! draws with a second drawing laid over (detector and typing data)
     compose_scale: list[float]    # the second drawing's side as a share of the canvas, [lo, hi]
 
 
