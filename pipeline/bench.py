@@ -401,6 +401,7 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     """
     from PIL import Image
     from rich.console import Console
+    from rich.markup import escape
 
     if console is None:
         console = Console(stderr=True)
@@ -461,14 +462,16 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
     print_tables(tables, console)
     fails = [r for r in rows if r.get("error")]
     for r in fails[:20]:
-        console.print(f"[red]failed[/] {r['name']}: {r['error']}", highlight=False, soft_wrap=True)
+        console.print(f"[red]failed[/] {escape(str(r['name']))}: {escape(str(r['error']))}", highlight=False,
+                      soft_wrap=True)
     if len(fails) > 20:
-        console.print(f"… and {len(fails) - 20} more failures (see {out / 'cases.csv'})")
+        console.print(f"… and {len(fails) - 20} more failures (see {out / 'cases.csv'})", markup=False)
     counts = batch.counts()
     computed = max((c.get("computed", 0) for c in counts.values()), default=0)
     console.print(f"pipeline wall time {batch_wall:.1f} s for {len(rows)} images ({computed} with stages computed "
                   f"in this run); time_s = the sum of an image's stage times, cached or not", highlight=False)
-    console.print(f"report in {out}/ (report.html, cases.csv, cases.json, summary.json)", highlight=False)
+    console.print(f"report in {out}/ (report.html, cases.csv, cases.json, summary.json)", highlight=False,
+                  markup=False)
     return rows, tables
 
 

@@ -93,6 +93,7 @@ def _summary_cell(entry: dict, column: str) -> str:
 
 def print_tables(tables: dict[str, list[dict]], console) -> None:
     """rich tables: one row per group, each cell ``median (mean)``."""
+    from rich.markup import escape
     from rich.table import Table
 
     for title, entries in tables.items():
@@ -107,7 +108,7 @@ def print_tables(tables: dict[str, list[dict]], console) -> None:
             t.add_column(_head(c), justify="right")
         for e in entries:
             cells = [_summary_cell(e[c], c) for c in cols]
-            t.add_row(e["group"], str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
+            t.add_row(escape(str(e["group"])), str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
         console.print(t)
 
 

@@ -197,7 +197,12 @@ class StageProgress:
 
 
 def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
-    """Summary table (per stage) and one line per failed image."""
+    """Summary table (per stage) and one line per failed image.
+
+    Paths and messages are escaped: rich would read ``[v2]`` in a file name as markup and drop it, and
+    ``[/]`` as a closing tag with nothing to close (a traceback).
+    """
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table(title=f"polyvec: {len(batch.results)} image(s) in {batch.wall_s:.1f} s")
@@ -214,15 +219,17 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
         for stage in batch.stages:
             r = per.get(stage)
             if r is not None and r.status == "failed":
-                console.print(f"[red]error[/] {image}: {stage}: {r.error}", highlight=False, soft_wrap=True)
+                console.print(f"[red]error[/] {escape(str(image))}: {stage}: {escape(str(r.error))}", highlight=False,
+                              soft_wrap=True)
                 if debug and r.detail:
-                    console.print(r.detail, highlight=False)
+                    console.print(r.detail, highlight=False, markup=False)
                 break
     for image, per in batch.results.items():
         for stage in batch.stages:
             r = per.get(stage)
             for note in (r.warnings if r is not None else ()):
-                console.print(f"[yellow]warning[/] {image}: {stage}: {note}", highlight=False, soft_wrap=True)
+                console.print(f"[yellow]warning[/] {escape(str(image))}: {stage}: {escape(str(note))}", highlight=False,
+                              soft_wrap=True)
     for stage in batch.stages:
         # per-item stages: how much of the work earlier runs had done (one line per stage, not per image)
         done = [per[stage].items for per in batch.results.values() if stage in per and per[stage].items]
@@ -232,7 +239,7 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
             console.print(f"{stage}: {reused} of {total} {name} reused from earlier runs",
                           highlight=False, soft_wrap=True)
     for image, files in batch.outputs.items():
-        console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True)
+        console.print("wrote " + ", ".join(files), highlight=False, soft_wrap=True, markup=False)
 
 
 def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
@@ -280,7 +287,7 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
         from pipeline.page import write_pages
 
         for page in write_pages(batch, store, out_dir):
-            console.print(f"wrote {page}", highlight=False, soft_wrap=True)
+            console.print(f"wrote {page}", highlight=False, soft_wrap=True, markup=False)
     return batch
 
 
@@ -308,7 +315,7 @@ def announce_edits(images: list[Path], cfg: DictConfig, console) -> None:
         except EditsError as exc:
             raise UsageError(str(exc)) from None
         how = "keypoint_edits.file" if section.get("file") else "found beside the input"
-        console.print(f"keypoint edits: {path} for {image} ({how})", highlight=False, soft_wrap=True)
+        console.print(f"keypoint edits: {path} for {image} ({how})", highlight=False, soft_wrap=True, markup=False)
 
 
 class _Progress:

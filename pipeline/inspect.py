@@ -90,6 +90,7 @@ def _short_config(cfg: dict, width: int = 60) -> str:
 
 
 def cmd_list(store: ArtifactStore, image: str | None, console) -> int:
+    from rich.markup import escape
     from rich.table import Table
 
     if image is None:
@@ -98,19 +99,19 @@ def cmd_list(store: ArtifactStore, image: str | None, console) -> int:
             d = images.setdefault(m.get("image", "?"), {"name": m.get("image_name", "?"), "n": 0, "stages": set()})
             d["n"] += 1
             d["stages"].add(stage)
-        table = Table(title=f"store {store.url}: {len(images)} image(s)")
+        table = Table(title=escape(f"store {store.url}: {len(images)} image(s)"))
         for col in ("image key", "name", "artifacts", "stages"):
             table.add_column(col)
         for k, d in sorted(images.items(), key=lambda t: t[1]["name"]):
             stages = ", ".join(sorted(d["stages"], key=lambda s: STAGE_ORDER.get(s, 99)))
-            table.add_row(k[:12], d["name"], str(d["n"]), stages)
+            table.add_row(k[:12], escape(str(d["name"])), str(d["n"]), stages)
         console.print(table)
         return 0
     rows = artifacts_of(store, image)
     if not rows:
-        console.print(f"nothing stored for {image} in {store.url}")
+        console.print(f"nothing stored for {image} in {store.url}", markup=False)
         return 1
-    table = Table(title=f"{image}: {len(rows)} artifact(s) in {store.url}")
+    table = Table(title=escape(f"{image}: {len(rows)} artifact(s) in {store.url}"))
     for col in ("stage", "key", "version", "size", "seconds", "peak MB", "config"):
         table.add_column(col)
     # A stage with several artifacts (a sweep) shows what differs between them, not the common prefix.
@@ -126,7 +127,7 @@ def cmd_list(store: ArtifactStore, image: str | None, console) -> int:
         size = store.size_bytes(stage, key)
         table.add_row(stage, key[:12], str(m.get("version")), f"{size / 1024:.0f} KB",
                       f"{m.get('duration_s', 0):.2f}", str(m.get("peak_rss_mb", "")),
-                      _short_config(shown.get(n, m.get("config", {}))))
+                      escape(_short_config(shown.get(n, m.get("config", {})))))
     console.print(table)
     return 0
 
@@ -176,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
             from pipeline.page import write_page
 
             out = write_page(store, args.image, args.out or f"{Path(args.image).stem}.html")
-            console.print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)", highlight=False, soft_wrap=True)
+            console.print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)", highlight=False, soft_wrap=True,
+                          markup=False)
             return 0
         key = resolve(store, args.stage, args.key, args.image)
         from PIL import Image
@@ -186,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         rgb = render_artifact(store, args.stage, key, scale=args.scale)
         out = Path(args.out or f"{Path(args.image).stem}.{args.stage}.png")
         Image.fromarray(rgb).save(out)
-        console.print(f"wrote {out}")
+        console.print(f"wrote {out}", markup=False)
         return 0
     except (LookupError, OSError) as exc:
         print(f"polyvec-inspect: error: {exc}", file=sys.stderr)

@@ -338,6 +338,24 @@ def test_plain_paths_with_odd_characters(tmp_path, cli):
     assert len(list((tmp_path / "artifacts" / "prep").glob("*/*"))) == 2
 
 
+def test_square_brackets_in_paths_are_printed_as_they_are(tmp_path, cli):
+    """A file named ``a[v2].png`` in a folder ``t [bold]`` is said to be written as ``a[v2].svg`` (rich read
+    ``[v2]`` as markup and dropped it), and a bad image at ``odd[/]bad.png`` is one error line, not
+    rich's MarkupError traceback (``[/]`` closed nothing)."""
+    (tmp_path / "t [bold]").mkdir()
+    (tmp_path / "t [bold]" / "a[v2].png").write_bytes(synthetic.vee(size=48).png_bytes())
+    (tmp_path / "t [bold]" / "odd[").mkdir()
+    (tmp_path / "t [bold]" / "odd[" / "]bad.png").write_bytes(b"not an image")
+    proc = cli("t [bold]/a[v2].png", "t [bold]/odd[/]bad.png", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    said = proc.stderr.replace("\n", "")
+    assert "error t [bold]/odd[/]bad.png: prep: not an image" in said, proc.stderr
+    assert "wrote out/a[v2].svg, out/a[v2].json" in said, proc.stderr
+    assert (tmp_path / "out" / "a[v2].svg").is_file()
+    listed = cli("list", cwd=tmp_path, module="pipeline.inspect")     # the store's images, by name
+    assert listed.returncode == 0 and "a[v2].png" in listed.stdout, listed.stdout + listed.stderr
+
+
 @pytest.mark.parametrize("args, message", [
     (("export.foo=1",), "Could not override 'export.foo'"),
     (("export.bezier.enabled=true",), "export.bezier.enabled"),
