@@ -108,7 +108,8 @@ def print_tables(tables: dict[str, list[dict]], console) -> None:
             t.add_column(_head(c), justify="right")
         for e in entries:
             cells = [_summary_cell(e[c], c) for c in cols]
-            t.add_row(escape(str(e["group"])), str(e["cases"]), f"[red]{e['failures']}[/]" if e["failures"] else "0", *cells)
+            fail = f"[red]{e['failures']}[/]" if e["failures"] else "0"
+            t.add_row(escape(str(e["group"])), str(e["cases"]), fail, *cells)
         console.print(t)
 
 
