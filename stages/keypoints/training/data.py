@@ -292,12 +292,8 @@ def draw_vector(rng: np.random.Generator, pool: dict, vcfg: dict, gcfg: Generato
     k = pick()
     prob, scale = compose_settings(vcfg)
     # The draw for composing is made only when it can happen, so that compose_prob 0 keeps the old stream.
-    if source == "ndjson" and prob > 0 and rng.random() < prob:
-        lo, hi = (int(v) for v in _canvas(vcfg, source))
-        size = int(rng.integers(lo, hi + 1))
-        strokes = compose_strokes(rng, drawings[k], drawings[pick()], size, scale)
-        return drawing_from_strokes(rng, strokes, (size, size), gcfg, rules)
-    return render_vector(rng, drawings[k], _canvas(vcfg, source), gcfg, rules)
+    over = drawings[pick()] if source == "ndjson" and prob > 0 and rng.random() < prob else None
+    return render_vector(rng, drawings[k], _canvas(vcfg, source), gcfg, rules, over=over, scale=scale)
 
 
 def compose_strokes(rng: np.random.Generator, first: list[np.ndarray], second: list[np.ndarray], size: int,
@@ -320,11 +316,13 @@ def compose_strokes(rng: np.random.Generator, first: list[np.ndarray], second: l
 
 
 def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_range, gcfg: GeneratorConfig,
-                  rules: LabelRules):
-    """One styled, labelled rendering of a human-stroke drawing on a square canvas of side in ``size_range``."""
+                  rules: LabelRules, over: list[np.ndarray] | None = None, scale: tuple[float, float] = (0.4, 0.7)):
+    """One styled, labelled rendering of a human-stroke drawing on a square canvas of side in ``size_range``,
+    with the drawing ``over`` laid over it when given (:func:`compose_strokes`, its side ``scale`` of the canvas)."""
     lo, hi = (int(v) for v in size_range)
     size = int(rng.integers(lo, hi + 1))
-    return drawing_from_strokes(rng, fit_strokes(strokes, size), (size, size), gcfg, rules)
+    placed = fit_strokes(strokes, size) if over is None else compose_strokes(rng, strokes, over, size, scale)
+    return drawing_from_strokes(rng, placed, (size, size), gcfg, rules)
 
 
 def vector_samples(vcfg: dict, rng: np.random.Generator, gcfg: GeneratorConfig, rules: LabelRules,
