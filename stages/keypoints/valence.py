@@ -67,40 +67,47 @@ def local_width(mask: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.maximum(2.0 * local_max[i, j], 1.0)
 
 
-def ring_profile(ring: np.ndarray) -> tuple[int, float, float, float]:
-    """Runs of ink on one circular sample vector.
+def ring_profiles(rings: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Runs of ink on circular sample vectors, one per row.
 
     Parameters
     ----------
-    ring : numpy.ndarray
-        bool (S,) ink along a circle, counter-clockwise.
+    rings : numpy.ndarray
+        bool (N, S): ink along N circles, each counter-clockwise.
 
     Returns
     -------
-    runs : int
-        Number of separate ink arcs (0 when the ring is all paper or all ink).
-    coverage : float
-        Fraction of the ring on ink.
-    widest : float
-        Largest arc as a fraction of the circle.
-    cos_pair : float
-        Cosine of the angle between the two arc centres when there are exactly two, else 1 (a
-        straight continuation has cos = −1, a hairpin cos ≈ 1).
+    runs : numpy.ndarray
+        int (N,) number of separate ink arcs (0 when the ring is all paper or all ink).
+    coverage : numpy.ndarray
+        float64 (N,) fraction of the ring on ink.
+    widest : numpy.ndarray
+        float64 (N,) largest arc as a fraction of the circle.
+    cos_pair : numpy.ndarray
+        float64 (N,) cosine of the angle between the two arc centres when there are exactly two, else 1
+        (a straight continuation has cos = −1, a hairpin cos ≈ 1).
     """
-    s = len(ring)
-    coverage = float(ring.mean())
-    if coverage == 0.0 or coverage == 1.0:
-        return 0, coverage, coverage, 1.0
-    start = int(np.argmin(ring))  # rotate so the vector starts on paper: no arc wraps around
-    r = np.roll(ring, -start)
-    edges = np.diff(np.concatenate([[0], r.astype(np.int8), [0]]))
-    begins, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    lengths = ends - begins
-    cos_pair = 1.0
-    if len(begins) == 2:
-        centres = 2 * np.pi * ((begins + ends - 1) / 2.0 + start) / s
-        cos_pair = float(np.cos(centres[0] - centres[1]))
-    return len(begins), coverage, float(lengths.max()) / s, cos_pair
+    rings = np.asarray(rings, bool)
+    n, s = rings.shape
+    coverage = rings.mean(axis=1)
+    mixed = (coverage > 0.0) & (coverage < 1.0)
+    # Rotate each ring so it starts on paper: no arc wraps around the end of the vector.
+    start = np.argmin(rings, axis=1)
+    r = np.take_along_axis(rings, (start[:, None] + np.arange(s)) % s, axis=1) & mixed[:, None]
+    edges = np.diff(np.pad(r.astype(np.int8), ((0, 0), (1, 1))), axis=1)
+    row_b, begins = np.nonzero(edges == 1)    # row-major: each row's arcs in order,
+    _, ends = np.nonzero(edges == -1)         # so the k-th begin and the k-th end are one arc
+    runs = np.bincount(row_b, minlength=n)
+    longest = np.zeros(n, np.int64)
+    np.maximum.at(longest, row_b, ends - begins)
+    widest = np.where(mixed, longest / s, coverage)
+    cos_pair = np.ones(n)
+    pair = np.flatnonzero(runs == 2)
+    if len(pair):
+        first = np.searchsorted(row_b, pair)  # index of each pair row's first arc
+        centres = 2 * np.pi * ((begins[[first, first + 1]] + ends[[first, first + 1]] - 1) / 2.0 + start[pair]) / s
+        cos_pair[pair] = np.cos(centres[0] - centres[1])
+    return runs, coverage, widest, cos_pair
 
 
 def class_scores_at(heatmaps: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -126,36 +133,58 @@ def class_scores_at(heatmaps: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 _THETA = 2 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
+_LABEL_CHUNK = 1 << 22  # window pixels labelled per call: bounds the memory of a drawing with many keypoints
 
 
-def _connected_ring(mask: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray:
-    """Ink along a circle, counting only the stroke the point lies on.
+def _connected_rings(mask: np.ndarray, points: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Ink along a circle around each point, counting only the stroke the point lies on.
 
-    The band inside the disk is split into 8-connected components; only the one holding the point
-    (or, when the point sits just off the ink, the one nearest to it) is sampled, so a neighbouring
-    stroke that passes near an end without touching it does not look like a branch.
+    Within the disk of radius ``radius + 1.5`` the band is split into 8-connected components; only the
+    one holding the point (or, when the point sits just off the ink, the one nearest to it, the first
+    in row-major order among equals) is sampled, so a neighbouring stroke that passes near an end without
+    touching it does not look like a branch. Points whose windows have the same size are labelled in one
+    call (a stack of windows whose structure does not connect them), which is what makes this fast.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (N, RING_SAMPLES).
     """
     h, w = mask.shape
-    x, y = float(point[0]), float(point[1])
-    reach = int(np.ceil(radius)) + 2
-    xi, yi = int(np.floor(x)), int(np.floor(y))
-    i0, i1, j0, j1 = max(yi - reach, 0), min(yi + reach + 1, h), max(xi - reach, 0), min(xi + reach + 1, w)
-    ring = np.zeros(RING_SAMPLES, bool)
-    if i0 >= i1 or j0 >= j1:
-        return ring
-    yy, xx = np.mgrid[i0:i1, j0:j1]
-    disk = mask[i0:i1, j0:j1] & (((xx + 0.5 - x) ** 2 + (yy + 0.5 - y) ** 2) <= (radius + 1.5) ** 2)
-    labels, count = ndimage.label(disk, structure=np.ones((3, 3), bool))
-    if count == 0:
-        return ring
-    ii, jj = np.nonzero(labels)
-    nearest = np.argmin((jj + j0 + 0.5 - x) ** 2 + (ii + i0 + 0.5 - y) ** 2)
-    stroke = labels == labels[ii[nearest], jj[nearest]]
-    xs = np.floor(x + radius * np.cos(_THETA)).astype(int) - j0
-    ys = np.floor(y + radius * np.sin(_THETA)).astype(int) - i0
-    inside = (xs >= 0) & (xs < j1 - j0) & (ys >= 0) & (ys < i1 - i0)
-    ring[inside] = stroke[ys[inside], xs[inside]]
-    return ring
+    n = len(points)
+    rings = np.zeros((n, RING_SAMPLES), bool)
+    x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
+    reach = np.ceil(radii).astype(np.int64) + 2
+    xi, yi = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    # Windows clipped to the image (a blob's rings are as wide as its width): a window wholly off the
+    # image sees no ink and its ring stays empty.
+    i0, i1 = np.maximum(yi - reach, 0), np.minimum(yi + reach + 1, h)
+    j0, j1 = np.maximum(xi - reach, 0), np.minimum(xi + reach + 1, w)
+    fits = (i1 > i0) & (j1 > j0)
+    shape_key = np.where(fits, (i1 - i0) * (w + 1) + (j1 - j0), -1)
+    plane = np.zeros((3, 3, 3), bool)
+    plane[1] = True  # 8-connected within a window, never across windows
+    cos_t, sin_t = np.cos(_THETA), np.sin(_THETA)
+    for key in np.unique(shape_key[fits]):
+        members = np.flatnonzero(shape_key == key)
+        hh, ww = divmod(int(key), w + 1)
+        for chunk in np.array_split(members, -(-len(members) * hh * ww // _LABEL_CHUNK)):
+            rows = i0[chunk, None] + np.arange(hh)          # absolute pixel rows (k, hh)
+            cols = j0[chunk, None] + np.arange(ww)
+            px, py = x[chunk, None, None], y[chunk, None, None]
+            dist2 = (cols[:, None, :] + 0.5 - px) ** 2 + (rows[:, :, None] + 0.5 - py) ** 2
+            disk = mask[rows[:, :, None], cols[:, None, :]] & (dist2 <= (radii[chunk, None, None] + 1.5) ** 2)
+            labels, count = ndimage.label(disk, structure=plane)
+            if count == 0:
+                continue
+            nearest = np.argmin(np.where(labels > 0, dist2, np.inf).reshape(len(chunk), -1), axis=1)
+            stroke_label = labels.reshape(len(chunk), -1)[np.arange(len(chunk)), nearest]
+            xs = np.floor(x[chunk, None] + radii[chunk, None] * cos_t).astype(np.int64) - j0[chunk, None]
+            ys = np.floor(y[chunk, None] + radii[chunk, None] * sin_t).astype(np.int64) - i0[chunk, None]
+            inside = (xs >= 0) & (xs < ww) & (ys >= 0) & (ys < hh)
+            sampled = labels[np.arange(len(chunk))[:, None], np.clip(ys, 0, hh - 1), np.clip(xs, 0, ww - 1)]
+            rings[chunk] = inside & (sampled == stroke_label[:, None]) & (stroke_label[:, None] > 0)
+    return rings
 
 
 def valence_features(mask: np.ndarray, points: np.ndarray, class_scores: np.ndarray) -> np.ndarray:
@@ -184,14 +213,13 @@ def valence_features(mask: np.ndarray, points: np.ndarray, class_scores: np.ndar
     mask = np.asarray(mask, bool)
     width = local_width(mask, points)
     out[:, :3] = np.asarray(class_scores, np.float32).reshape(n, 3)
-    for k in range(n):
-        col = 3
-        for a, b in RING_RADII:
-            ring = _connected_ring(mask, points[k], a * width[k] + b)
-            runs, coverage, widest, cos_pair = ring_profile(ring)
-            out[k, col + min(runs, MAX_RUNS)] = 1.0
-            out[k, col + MAX_RUNS + 1:col + MAX_RUNS + 4] = (coverage, widest, cos_pair)
-            col += MAX_RUNS + 4
+    rows = np.arange(n)
+    col = 3
+    for a, b in RING_RADII:
+        runs, coverage, widest, cos_pair = ring_profiles(_connected_rings(mask, points, a * width + b))
+        out[rows, col + np.minimum(runs, MAX_RUNS)] = 1.0
+        out[:, col + MAX_RUNS + 1:col + MAX_RUNS + 4] = np.stack([coverage, widest, cos_pair], axis=1)
+        col += MAX_RUNS + 4
     out[:, -1] = width / 10.0
     return out
 

@@ -14,7 +14,7 @@ from stages.artifact import Artifact
 from stages.errors import InputError
 from stages.keypoints import PACKAGED_TYPE_CLASSIFIER, STAGE_VERSION, run
 from stages.keypoints.valence import (FEATURES, MAX_RUNS, RING_RADII, TypeClassifier, class_scores_at,
-                                      local_width, ring_profile, valence_features)
+                                      local_width, ring_profiles, valence_features)
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -24,19 +24,40 @@ def _runs(features: np.ndarray, ring: int) -> int:
     return int(np.argmax(features[col:col + MAX_RUNS + 1]))
 
 
-def test_ring_profile_counts_arcs_and_angles():
-    ring = np.zeros(96, bool)
-    assert ring_profile(ring)[0] == 0
-    ring[10:14] = True
-    ring[58:62] = True  # opposite: a straight stroke through the centre
-    runs, coverage, widest, cos_pair = ring_profile(ring)
-    assert runs == 2 and cos_pair == pytest.approx(-1.0) and coverage == pytest.approx(8 / 96)
-    ring[:] = False
-    ring[94:] = True
-    ring[:3] = True  # one arc wrapping around the start of the vector
-    runs, _, widest, _ = ring_profile(ring)
-    assert runs == 1 and widest == pytest.approx(5 / 96)
-    assert ring_profile(np.ones(96, bool))[:2] == (0, 1.0)
+def test_ring_profiles_count_arcs_and_angles():
+    rings = np.zeros((4, 96), bool)
+    rings[1, 10:14] = True
+    rings[1, 58:62] = True  # opposite: a straight stroke through the centre
+    rings[2, 94:] = True
+    rings[2, :3] = True     # one arc wrapping around the start of the vector
+    rings[3] = True         # all ink: a blob
+    runs, coverage, widest, cos_pair = ring_profiles(rings)
+    assert list(runs) == [0, 2, 1, 0]
+    assert cos_pair[1] == pytest.approx(-1.0) and coverage[1] == pytest.approx(8 / 96)
+    assert widest[2] == pytest.approx(5 / 96) and cos_pair[2] == 1.0
+    assert (coverage[3], widest[3]) == (1.0, 1.0) and (coverage[0], widest[0]) == (0.0, 0.0)
+
+
+def test_rings_of_many_points_are_those_of_each_point_alone(monkeypatch):
+    # The rings of all points are labelled together, windows of one size stacked in one call: no
+    # window may see another's ink, whatever the chunking, at the border or off the image.
+    import stages.keypoints.valence as valence
+
+    rng = np.random.default_rng(5)
+    mask = np.zeros((120, 200), bool)
+    mask[39:42, 10:38] = True     # an end at x = 37.5 that stops 3 px short of ...
+    mask[10:70, 41:44] = True     # ... a vertical stroke
+    mask[20:100, 110:190] = True  # a blob: its window is all ink where the end's has a gap
+    pts = np.concatenate([[[37.5, 40.5], [150.5, 60.5]], rng.uniform(-8, 208, (40, 2)),
+                          [[0.5, 0.5], [199.9, 40.2], [-30.0, 10.0]]])
+    radii = np.concatenate([[12.0, 12.0], rng.choice([3.0, 7.5, 12.0], len(pts) - 2)])
+    together = valence._connected_rings(mask, pts, radii)
+    alone = np.concatenate([valence._connected_rings(mask, pts[k:k + 1], radii[k:k + 1]) for k in range(len(pts))])
+    assert together.any() and np.array_equal(together, alone)
+    assert ring_profiles(alone[:1])[0][0] == 1  # the end sees its own stroke only
+    monkeypatch.setattr(valence, "_LABEL_CHUNK", 700)  # a few windows per call
+    assert np.array_equal(valence._connected_rings(mask, pts, radii), alone)
+    assert not alone[-1].any()  # off the image: no ink
 
 
 @pytest.mark.parametrize("drawing, point, runs", [
