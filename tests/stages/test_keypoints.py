@@ -376,6 +376,32 @@ def test_loaded_networks_have_their_batch_norms_folded():
         fold_batch_norms(KeypointNet(model.cfg))
 
 
+def test_pointwise_convolutions_by_onednn_match_conv2d_and_fall_back():
+    # The loaded network runs its 1×1 convolutions (but the one-channel ones) through oneDNN; the
+    # result is conv2d's up to rounding, and under bf16 autocast or with gradients conv2d itself runs.
+    from torch import nn
+
+    from stages.keypoints.network import OneDNNPointwise, use_onednn_pointwise
+
+    model, _ = load_model("packaged")
+    swapped = [m for m in model.modules() if isinstance(m, OneDNNPointwise)]
+    plain_1x1 = [m for m in model.modules() if isinstance(m, nn.Conv2d) and m.kernel_size == (1, 1)]
+    assert len(swapped) > 10 and all(m.in_channels == 1 for m in plain_1x1)
+    torch.manual_seed(0)
+    conv = nn.Conv2d(12, 5, 1)
+    pw = use_onednn_pointwise(nn.Sequential(conv))[0]
+    assert isinstance(pw, OneDNNPointwise) and pw.weight is conv.weight
+    x = torch.randn(1, 12, 40, 56).contiguous(memory_format=torch.channels_last)
+    with torch.inference_mode():
+        ref = nn.functional.conv2d(x, conv.weight, conv.bias)
+        assert torch.allclose(pw(x), ref, atol=1e-5) and torch.allclose(pw(x.contiguous()), ref, atol=1e-5)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert pw(x.bfloat16()).dtype == torch.bfloat16
+    y = pw(x.requires_grad_())
+    y.sum().backward()
+    assert x.grad is not None and torch.allclose(y, ref, atol=1e-5)
+
+
 @pytest.mark.skipif(not PACKAGED_WEIGHTS.is_file(), reason="no shipped weights yet")
 def test_shipped_model_finds_both_ends_of_a_stroke():
     d = synthetic.line(size=96, angle=23.0, length=60.0, width=3.0)
