@@ -279,7 +279,7 @@ def test_run_artifact_contract():
     assert a["types"].dtype == np.int8 and a["scores"].dtype == np.float32
     assert len(a.data["points"]) == len(a["points"])
     assert set(a["types"].tolist()) <= {1, 3, 5}
-    assert STAGE_VERSION.startswith("6+") and a.data["weights"] and a.data["scale"] == 1
+    assert STAGE_VERSION.startswith("7+") and a.data["weights"] and a.data["scale"] == 1
     assert (a.data["height"], a.data["width"]) == (48, 48)        # the drawing's size, for the edits
     assert torch.get_num_threads() == 1
     img = render_keypoints(d.grey, a["heatmaps"], a["points"], a["types"])
