@@ -254,15 +254,19 @@ def stroke_count_cdf(drawings: list[list[np.ndarray]], power: float) -> np.ndarr
     return np.cumsum(np.array([len(d) for d in drawings], float) ** power)
 
 
+#: ``train.vector.compose_scale`` where a config has none (conf/train/default.yaml's value).
+COMPOSE_SCALE = (0.4, 0.7)
+
+
 def compose_settings(vcfg: dict) -> tuple[float, tuple[float, float]]:
-    """``train.vector.compose_prob`` and ``compose_scale`` (0 and (0.4, 0.7) when absent), checked.
+    """``train.vector.compose_prob`` and ``compose_scale`` (0 and :data:`COMPOSE_SCALE` when absent), checked.
 
     A probability outside [0, 1] or a scale range outside (0, 1] is an InputError.
     """
     prob = float(vcfg.get("compose_prob", 0.0))
     if not 0.0 <= prob <= 1.0:
         raise InputError(f"train.vector.compose_prob must be within [0, 1], got {prob}")
-    lo, hi = (float(v) for v in vcfg.get("compose_scale", (0.4, 0.7)))
+    lo, hi = (float(v) for v in vcfg.get("compose_scale", COMPOSE_SCALE))
     if not 0.0 < lo <= hi <= 1.0:
         raise InputError(f"train.vector.compose_scale must be [lo, hi] with 0 < lo <= hi <= 1, got {[lo, hi]}")
     return prob, (lo, hi)
@@ -316,7 +320,7 @@ def compose_strokes(rng: np.random.Generator, first: list[np.ndarray], second: l
 
 
 def render_vector(rng: np.random.Generator, strokes: list[np.ndarray], size_range, gcfg: GeneratorConfig,
-                  rules: LabelRules, over: list[np.ndarray] | None = None, scale: tuple[float, float] = (0.4, 0.7)):
+                  rules: LabelRules, over: list[np.ndarray] | None = None, scale: tuple[float, float] = COMPOSE_SCALE):
     """One styled, labelled rendering of a human-stroke drawing on a square canvas of side in ``size_range``,
     with the drawing ``over`` laid over it when given (:func:`compose_strokes`, its side ``scale`` of the canvas)."""
     lo, hi = (int(v) for v in size_range)
