@@ -199,7 +199,23 @@ HEAP_MMAP_BYTES = 32 * 2**20
 #: largest array the heap serves (a worker's peak RSS on 24 drawings 707–728 → 823–872 MB; 256 MiB
 #: gave 910 MB for no measurable time).
 HEAP_TRIM_BYTES = 32 * 2**20
+#: The keypoints child's trim threshold (:func:`keep_network_memory`): more than the network's
+#: activations freed at once in one pass of a drawing of ``keypoints.single_pass_max`` px.
+NETWORK_TRIM_BYTES = 2**30
 _HEAP_TUNED = False
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4      # glibc's <malloc.h>
+
+
+def _mallopt():
+    """glibc's ``mallopt`` (None where the C library has none: not glibc)."""
+    import ctypes
+
+    try:  # the symbols already loaded into this process, the C library's among them
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):  # no mallopt (macOS), no CDLL(None) (Windows)
+        return None
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    return mallopt
 
 
 def reuse_freed_memory() -> None:
@@ -207,19 +223,24 @@ def reuse_freed_memory() -> None:
     :data:`HEAP_TRIM_BYTES`) in this process. Once per process; nothing where the C library has no
     ``mallopt`` (not glibc)."""
     global _HEAP_TUNED
-    if _HEAP_TUNED:
+    if _HEAP_TUNED or (mallopt := _mallopt()) is None:
+        _HEAP_TUNED = True
         return
     _HEAP_TUNED = True
-    import ctypes
+    mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_BYTES)
+    mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_BYTES)
 
-    try:  # the symbols already loaded into this process, the C library's among them
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError, TypeError):  # no mallopt (macOS), no CDLL(None) (Windows)
-        return
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    m_trim_threshold, m_mmap_threshold = -1, -3      # glibc's <malloc.h>
-    mallopt(m_mmap_threshold, HEAP_MMAP_BYTES)
-    mallopt(m_trim_threshold, HEAP_TRIM_BYTES)
+
+def keep_network_memory() -> None:
+    """Serve every allocation of this process from the heap and keep up to :data:`NETWORK_TRIM_BYTES`
+    of freed memory: for the keypoints child, whose network frees and allocates full-resolution
+    activations layer after layer. At 704² a 32-channel map is 63 MB, above the 32-MiB ceiling of
+    glibc's mmap threshold, so each was a fresh mapping faulted in page by page (54–139 k faults a
+    pass; stages/DECISIONS.md, engine). The child's memory stays at its peak until it exits."""
+    reuse_freed_memory()
+    if (mallopt := _mallopt()) is not None:
+        mallopt(_M_MMAP_MAX, 0)
+        mallopt(_M_TRIM_THRESHOLD, NETWORK_TRIM_BYTES)
 
 
 def _pin_threads(alone: bool = False) -> None:
@@ -751,6 +772,7 @@ def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict]) -> Non
     """The child of :class:`_ChildTasks`: import the stages, preload what their tasks will use (a
     stage's ``preload(section)``, given its config section), then run tasks until told to stop."""
     os.environ.update(THREAD_ENV)
+    keep_network_memory()
     for name in stages:
         mod = BY_NAME[name].load()
         if name in configs and "preload" in dir(mod):

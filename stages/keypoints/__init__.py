@@ -41,7 +41,8 @@ def _file_hash(path: Path) -> str:
 
 # 4: BatchNorms folded into the convolutions at load (heatmaps move by float rounding)
 # 7: 1×1 convolutions by oneDNN (network.use_onednn_pointwise; heatmaps move by float rounding)
-STAGE_VERSION = "7+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
+# 8: concatenations fused part by part, one-channel 1×1 convolutions as a scaling (float rounding)
+STAGE_VERSION = "8+" + "+".join(_file_hash(p) for p in (PACKAGED_WEIGHTS, PACKAGED_TYPE_CLASSIFIER, PACKAGED_PROCEDURAL))
 
 
 @dataclass

@@ -76,7 +76,8 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     """
     import torch
 
-    from stages.keypoints.network import KeypointNet, NetConfig, fold_batch_norms, use_onednn_pointwise
+    from stages.keypoints.network import (KeypointNet, NetConfig, fold_batch_norms, split_concatenations,
+                                          use_onednn_pointwise)
 
     path = _PACKAGED_NETWORKS.get(weights or "packaged") or Path(weights)
     key = str(path)
@@ -107,6 +108,7 @@ def load_model(weights: str | Path | None = None) -> tuple[KeypointNet, str]:
     # heatmaps to 1e-5; tests/benchmarks/bench_keypoints.py). Inference only: with bf16 training it
     # gives NaN gradients (train.channels_last).
     model.to(memory_format=torch.channels_last)
+    split_concatenations(model)  # no concatenated tensors: the stem's is 95 MB at 704²
     use_onednn_pointwise(model)  # 1×1 convolutions by oneDNN: 2.06 -> 1.73 s at 700² on a CPU without bf16
     _MODELS[key] = (model, name)
     return model, name

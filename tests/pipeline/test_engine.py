@@ -191,6 +191,34 @@ def test_a_process_that_runs_stages_reuses_freed_arrays_memory():
 
 
 @_GLIBC
+def test_the_keypoints_child_keeps_arrays_over_the_mmap_ceiling_in_its_heap():
+    """Arrays over glibc's largest mmap threshold (32 MiB; the network's 63-MB activations at 704²)
+    are fresh mappings even after ``reuse_freed_memory``; ``keep_network_memory`` serves them from the heap."""
+    child = (
+        "import resource, sys\nimport torch\nfrom pipeline import runner\n"
+        "runner.keep_network_memory() if sys.argv[1] == 'network' else runner.reuse_freed_memory()\n"
+        "for _ in range(2):\n    torch.ones(5 << 20, dtype=torch.float64).sum()\n"   # the heap grows (twice)
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        # torch's tensors, not numpy's: numpy asks for transparent huge pages (512 times fewer faults)
+        "for _ in range(16):\n    torch.ones(5 << 20, dtype=torch.float64).sum()\n"   # 40 MiB each: 10,240 pages
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)\n")
+    faults = {mode: int(subprocess.run([sys.executable, "-c", child, mode], capture_output=True, text=True,
+                                       check=True).stdout.split()[-1]) for mode in ("stages", "network")}
+    assert faults["stages"] > 16 * 8000
+    assert faults["network"] < 2 * 10240     # the heap may still grow once or twice (glibc's bins)
+
+
+def test_the_keypoints_child_sets_its_heap_before_its_stages_load():
+    """The child (``_serve_tasks``) keeps its network's memory from its first task on."""
+    import inspect
+
+    from pipeline.runner import _serve_tasks
+
+    body = inspect.getsource(_serve_tasks)
+    assert body.index("keep_network_memory()") < body.index("BY_NAME[name].load()")
+
+
+@_GLIBC
 def test_local_cluster_workers_reuse_freed_arrays_memory(tmp_path, images, compose_cfg):
     """A local worker that has run a task keeps freed arrays' memory for the next ones (dask's own
     setting gave it back and faulted it in again: a quarter of a 2-worker batch's CPU seconds)."""

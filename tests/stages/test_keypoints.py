@@ -279,7 +279,7 @@ def test_run_artifact_contract():
     assert a["types"].dtype == np.int8 and a["scores"].dtype == np.float32
     assert len(a.data["points"]) == len(a["points"])
     assert set(a["types"].tolist()) <= {1, 3, 5}
-    assert STAGE_VERSION.startswith("7+") and a.data["weights"] and a.data["scale"] == 1
+    assert STAGE_VERSION.startswith("8+") and a.data["weights"] and a.data["scale"] == 1
     assert (a.data["height"], a.data["width"]) == (48, 48)        # the drawing's size, for the edits
     assert torch.get_num_threads() == 1
     img = render_keypoints(d.grey, a["heatmaps"], a["points"], a["types"])
@@ -381,12 +381,13 @@ def test_pointwise_convolutions_by_onednn_match_conv2d_and_fall_back():
     # result is conv2d's up to rounding, and under bf16 autocast or with gradients conv2d itself runs.
     from torch import nn
 
-    from stages.keypoints.network import OneDNNPointwise, use_onednn_pointwise
+    from stages.keypoints.network import ChannelScale, OneDNNPointwise, use_onednn_pointwise
 
     model, _ = load_model("packaged")
     swapped = [m for m in model.modules() if isinstance(m, OneDNNPointwise)]
+    scales = [m for m in model.modules() if isinstance(m, ChannelScale)]
     plain_1x1 = [m for m in model.modules() if isinstance(m, nn.Conv2d) and m.kernel_size == (1, 1)]
-    assert len(swapped) > 10 and all(m.in_channels == 1 for m in plain_1x1)
+    assert len(swapped) > 10 and len(scales) == 2 and not plain_1x1   # the stem's two from the drawing
     torch.manual_seed(0)
     conv = nn.Conv2d(12, 5, 1)
     pw = use_onednn_pointwise(nn.Sequential(conv))[0]
@@ -400,6 +401,66 @@ def test_pointwise_convolutions_by_onednn_match_conv2d_and_fall_back():
     y = pw(x.requires_grad_())
     y.sum().backward()
     assert x.grad is not None and torch.allclose(y, ref, atol=1e-5)
+
+
+def test_one_channel_pointwise_convolution_is_a_channels_last_scaling():
+    # The stem's 1×1 convolutions from the drawing: conv2d's values, written channels-last (what the next
+    # 3×3 convolution reads without a reorder); conv2d itself under autocast or with gradients.
+    from torch import nn
+
+    from stages.keypoints.network import ChannelScale, use_onednn_pointwise
+
+    torch.manual_seed(1)
+    conv = nn.Conv2d(1, 6, 1)
+    cs = use_onednn_pointwise(nn.Sequential(conv))[0]
+    assert isinstance(cs, ChannelScale)
+    x = torch.randn(2, 1, 30, 44)
+    with torch.inference_mode():
+        ref = nn.functional.conv2d(x, conv.weight, conv.bias)
+        y = cs(x)
+        assert y.is_contiguous(memory_format=torch.channels_last) and torch.allclose(y, ref, atol=1e-6)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert cs(x).dtype == torch.bfloat16
+    y = cs(x.requires_grad_())
+    y.sum().backward()
+    assert x.grad is not None and torch.allclose(y, ref, atol=1e-6)
+
+
+def test_concatenations_are_fused_part_by_part():
+    # PartwiseFuse: conv(cat(parts)) as a sum over the parts, for the stem (1×1) and the decoder (3×3 +
+    # LeakyReLU); the loaded network uses it at every concatenation and never concatenates.
+    from torch import nn
+
+    from stages.keypoints.network import PartwiseFuse, ResNeXtModule, _Up
+
+    torch.manual_seed(2)
+    for k, act in ((1, []), (3, [nn.LeakyReLU(0.1)])):
+        conv = nn.Conv2d(10, 4, k, padding=k // 2)
+        seq = nn.Sequential(conv, nn.Identity(), *act)
+        fuse = PartwiseFuse(seq, [6, 4])
+        parts = [torch.randn(1, 6, 21, 17).contiguous(memory_format=torch.channels_last), torch.randn(1, 4, 21, 17)]
+        with torch.inference_mode():
+            ref = seq(torch.cat(parts, 1))
+            assert torch.allclose(fuse(parts), ref, atol=1e-5)
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                assert torch.allclose(fuse(parts).float(), ref, atol=0.1)
+        assert torch.allclose(fuse(parts), ref, atol=1e-5)   # with gradients: conv2d's path
+    with pytest.raises(ValueError, match="folded"):
+        PartwiseFuse(nn.Sequential(nn.Conv2d(4, 2, 1), nn.BatchNorm2d(2)), [2, 2])
+    with pytest.raises(ValueError, match="channels"):
+        PartwiseFuse(nn.Sequential(nn.Conv2d(4, 2, 1)), [2, 3])
+    model, _ = load_model("packaged")
+    fusing = [m for m in model.modules() if isinstance(m, (ResNeXtModule, _Up))]
+    assert len(fusing) == 1 + model.cfg.depth and all(isinstance(m.fuse, PartwiseFuse) for m in fusing)
+    cats = []
+    original = torch.cat
+    try:
+        torch.cat = lambda parts, *a, **kw: cats.append(sum(t.shape[1] for t in parts)) or original(parts, *a, **kw)
+        with torch.inference_mode():
+            model(torch.zeros(1, 1, 32, 32))
+    finally:
+        torch.cat = original
+    assert cats == [4]   # only the four output maps
 
 
 @pytest.mark.skipif(not PACKAGED_WEIGHTS.is_file(), reason="no shipped weights yet")
@@ -524,6 +585,46 @@ def test_class_branch_training_keeps_detection(tmp_path):
     # The detector is frozen: H1 is unchanged, only the class maps differ.
     assert torch.equal(h_old[:, 0], h_new[:, 0])
     assert not torch.equal(h_old[:, 1:], h_new[:, 1:])
+
+
+def test_distilled_class_branch_keeps_detection_and_learns_the_teachers_maps(tmp_path):
+    """``train.class_branch.distill``: a narrower class branch trained on the teacher's own class maps
+    around its detections; the trunk and H1 are the teacher's, and the student's loss falls."""
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train, train_class_branch
+    from stages.keypoints.training.loop import distill_patches
+
+    small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
+             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]
+    base = compose_plain(CONF, small + [
+        f"train.out_dir={tmp_path / 'base'}", "train.steps=3", "train.batch_size=2",
+        "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000",
+        "train.network.class_width=6", "train.network.class_dilations=[1,2]"])
+    train(base)
+    teacher_path = tmp_path / "base" / "keypoints.pt"
+    cfg = compose_plain(CONF, small + [
+        f"train.out_dir={tmp_path / 'cb'}", f"train.init_weights={teacher_path}", "train.vector_prob=0",
+        "train.network.class_width=3", "train.network.class_dilations=[1,2]",
+        "train.class_branch.distill=true", "train.class_branch.peak_threshold=-1",
+        "train.class_branch.drawings=2", "train.class_branch.val_drawings=1", "train.class_branch.epochs=4",
+        "train.class_branch.lr=0.02", "train.class_branch.patch=13", "train.class_branch.supervised_margin=4"])
+    teacher, _ = load_model(teacher_path)
+    feats, targets = distill_patches(teacher, cfg, 1, 5, 13, 4)
+    assert feats.shape[1:] == (4, 13, 13) and targets.shape == (len(feats), 3, 5, 5)
+    # The targets are the teacher's own class maps on the centre of each feature patch.
+    with torch.inference_mode():
+        again = torch.tanh(teacher.class_head(feats[:4].float()))[:, :, 4:9, 4:9]
+    # (float16 storage: ≤ 2.5e-4 apart; the maps one pixel off differ by ~1e-3 even in this tiny network)
+    assert torch.allclose(again, targets[:4].float(), rtol=0, atol=4e-4)
+    rec = train_class_branch(cfg)
+    assert rec["mode"] == "class_branch_distill" and rec["patches"] > 0 and len(rec["history"]) == 4
+    assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
+    new, _ = load_model(tmp_path / "cb" / "keypoints.pt")
+    assert new.cfg.class_width == 3
+    x = torch.from_numpy(network_input(synthetic.tee(size=64).grey, 0.5))[None, None]
+    with torch.inference_mode():
+        h_old, h_new = teacher(x)[0], new(x)[0]
+    assert torch.equal(h_old[:, 0], h_new[:, 0])
 
 
 def test_widening_the_shipped_network_keeps_its_heatmaps():

@@ -78,6 +78,8 @@ class ClassBranchConfig:
     batch_size: int
     lr: float
     balance_power: float
+    distill: bool
+    peak_threshold: float
 
 
 @dataclass

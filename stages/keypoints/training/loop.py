@@ -19,8 +19,8 @@ from stages.errors import InputError
 from stages.evaluate.keypoints import MatchResult, match_keypoints
 from stages.keypoints.inference import find_keypoints, use_bf16
 from stages.keypoints.network import KeypointNet, NetConfig, count_parameters
-from stages.keypoints.training.data import (DrawingStream, compose_settings, prepare_sample, stroke_count_power,
-                                            validation_set)
+from stages.keypoints.training.data import (DrawingStream, compose_settings, draw_vector, prepare_sample,
+                                            stroke_count_cdf, stroke_count_power, validation_set, vector_pool)
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
 from stages.keypoints.training.targets import class_cross_entropy, junction_weighted_band, keypoint_loss
@@ -390,6 +390,129 @@ def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: i
     return torch.stack(feats), torch.stack(classes).long(), torch.stack(nears)
 
 
+def distill_patches(teacher: KeypointNet, cfg: dict, count: int, seed: int, patch: int, margin: int,
+                    part: str = "train") -> tuple[torch.Tensor, torch.Tensor]:
+    """Frozen decoder features and the teacher's class maps around the teacher's own detections.
+
+    ``count`` drawings of the detector's mix (a share ``train.vector_prob`` drawn from the human strokes
+    of ``part`` of the split, the rest procedural) run through the whole ``teacher``; a ``patch``-pixel
+    square of its full-resolution decoder features is cut around every peak of its H1 at least
+    ``train.class_branch.peak_threshold`` on the dilated band — the pixels whose class values the
+    stage reads (:func:`~stages.keypoints.valence.class_scores_at`), true and false keypoints alike —
+    with the teacher's class maps (tanh of its class logits, unclipped) on the central square that lies
+    ``margin`` pixels inside the patch. No label is used: the student learns what the teacher says.
+
+    Returns
+    -------
+    feats : torch.Tensor
+        float16 (N, C, patch, patch).
+    targets : torch.Tensor
+        float16 (N, 3, patch - 2 margin, patch - 2 margin).
+    """
+    tc, kc = cfg["train"], cfg["keypoints"]
+    rng = np.random.default_rng(seed)
+    gcfg = from_section(GeneratorConfig, tc["generator"], "train.generator")
+    rules = from_section(LabelRules, tc["labels"], "train.labels")
+    vprob = float(tc.get("vector_prob") or 0.0)
+    vcfg = tc.get("vector") or {}
+    pool = vector_pool(vcfg, part) if vprob > 0 else {}
+    busy = stroke_count_cdf(pool.get("ndjson") or [], stroke_count_power(vcfg))
+    thr = float(tc["class_branch"]["peak_threshold"])
+    r, m = patch // 2, teacher.multiple
+    feats, targets = [], []
+    teacher.eval()
+    with torch.inference_mode():
+        for _ in range(count):
+            s = (draw_vector(rng, pool, vcfg, gcfg, rules, ndjson_cdf=busy)
+                 if pool and rng.random() < vprob else None) or generate(rng, gcfg, rules)
+            x, _t, band = prepare_sample(s, cfg)
+            h, w = x.shape
+            # Padded by r so that every patch lies inside the computed features (zeros beyond the
+            # drawing, as the stage's padding), then to the network's multiple.
+            xp = np.pad(x, ((r, r + m - (h + 2 * r) % m), (r, r + m - (w + 2 * r) % m)))
+            f = teacher.trunk(torch.from_numpy(xp)[None, None])[0]
+            h1 = torch.tanh(teacher.side[0](f))[0, 0, r:r + h, r:r + w].numpy()
+            cls = torch.tanh(teacher.class_head(f))[0]
+            pts, _, _ = find_keypoints(np.broadcast_to(h1, (4, h, w)), thr, int(kc["min_distance"]), band > 0, False)
+            for px, py in pts:
+                i, j = int(py) + r, int(px) + r
+                feats.append(f[0, :, i - r:i + r + 1, j - r:j + r + 1].half())
+                targets.append(cls[:, i - r + margin:i + r + 1 - margin, j - r + margin:j + r + 1 - margin].half())
+    if not feats:
+        raise InputError(f"train.class_branch: no teacher peak >= {thr} in {count} drawings")
+    return torch.stack(feats), torch.stack(targets)
+
+
+def _distill_class_branch(model: KeypointNet, cfg: dict, out: Path, t0: float) -> dict:
+    """The class branch of ``model`` trained to reproduce ``train.init_weights``' own (``distill: true``).
+
+    The student (``train.network.class_width`` / ``class_dilations``) minimises the squared difference
+    of its tanh class maps from the teacher's on the centre of each patch of :func:`distill_patches`;
+    the trunk is the teacher's, so detection is unchanged bit for bit. Used to make the branch cheaper.
+    """
+    from stages.keypoints.stage import load_model
+
+    tc, cb = cfg["train"], cfg["train"]["class_branch"]
+    teacher, _ = load_model(tc["init_weights"])  # BatchNorms folded, as the stage runs it
+    patch, margin = int(cb["patch"]), int(cb["supervised_margin"])
+    feats, targ = distill_patches(teacher, cfg, int(cb["drawings"]), int(cb["seed"]), patch, margin)
+    vfeats, vtarg = distill_patches(teacher, cfg, int(cb["val_drawings"]), int(cb["val_seed"]), patch, margin,
+                                    part="valid")
+    t_data = time.time() - t0
+    head = model.class_head
+    for mod in head.modules():
+        if hasattr(mod, "reset_parameters"):
+            mod.reset_parameters()
+    opt = torch.optim.Adam(head.parameters(), lr=float(cb["lr"]))
+    n, bs, epochs = len(feats), int(cb["batch_size"]), int(cb["epochs"])
+    total = epochs * math.ceil(n / bs)
+    c = patch // 2 - margin  # the patch centre in the target square
+
+    def centre(fe: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(head(fe.float())[:, :, margin:patch - margin, margin:patch - margin])
+
+    def fidelity(fe: torch.Tensor, tg: torch.Tensor) -> dict:
+        head.eval()
+        with torch.inference_mode():
+            pred = torch.cat([centre(fe[k:k + 512])[:, :, c, c] for k in range(0, len(fe), 512)])
+        head.train()
+        want = tg[:, :, c, c].float()
+        return {"agreement": float((pred.argmax(1) == want.argmax(1)).float().mean()),
+                "mean_abs": float((pred.clamp(0, 1) - want.clamp(0, 1)).abs().mean())}
+
+    step, history = 0, []
+    head.train()
+    for ep in range(epochs):
+        perm = torch.randperm(n)
+        tot = 0.0
+        for k in range(0, n, bs):
+            idx = perm[k:k + bs]
+            fe, tg = feats[idx].float(), targ[idx].float()
+            # Flips and quarter turns: the branch should not learn an orientation the trunk lacks.
+            if bool(torch.randint(0, 2, ())):
+                fe, tg = torch.flip(fe, (-1,)), torch.flip(tg, (-1,))
+            q = int(torch.randint(0, 4, ()))
+            fe, tg = torch.rot90(fe, q, (-2, -1)), torch.rot90(tg, q, (-2, -1))
+            loss = F.mse_loss(centre(fe), tg)
+            for g in opt.param_groups:
+                g["lr"] = 0.5 * float(cb["lr"]) * (1 + math.cos(math.pi * step / total))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            tot += float(loss.detach()) * len(idx)
+        rec = {"epoch": ep + 1, "loss": tot / n, "val": fidelity(vfeats, vtarg), "elapsed_s": time.time() - t0}
+        history.append(rec)
+        print(f"epoch {ep + 1} loss {rec['loss']:.5f} val agreement {rec['val']['agreement']:.4f} "
+              f"mean |diff| {rec['val']['mean_abs']:.4f} ({rec['elapsed_s']:.0f} s)", flush=True)
+    record = {"mode": "class_branch_distill", "patches": n, "val_patches": len(vfeats), "data_seconds": t_data,
+              "seconds": time.time() - t0, "history": history, "parameters_class_branch": count_parameters(head),
+              "init_weights": str(tc["init_weights"]), "torch": str(torch.__version__)}
+    export_weights(model, out / "keypoints.pt", record | {"config": tc})
+    (out / "record.json").write_text(json.dumps(record, indent=2))
+    return record
+
+
 def train_class_branch(cfg: dict) -> dict:
     """Re-train only the class branch of a trained detector (``train.class_branch`` settings).
 
@@ -422,6 +545,8 @@ def train_class_branch(cfg: dict) -> dict:
     if any(not k.startswith("class_head.") for k in missing):
         raise SystemExit(f"init_weights lacks {missing}")
     t0 = time.time()
+    if cb["distill"]:
+        return _distill_class_branch(model, cfg, out, t0)
     patch, margin = int(cb["patch"]), int(cb["supervised_margin"])
     feats, cls, near = class_patches(model, cfg, int(cb["drawings"]), int(cb["seed"]), patch)
     vfeats, vcls, vnear = class_patches(model, cfg, int(cb["val_drawings"]), int(cb["val_seed"]), patch)
