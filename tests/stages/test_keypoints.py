@@ -558,18 +558,27 @@ def test_legacy_network_config_rebuilds_the_first_head():
     assert out.shape == (1, 4, 32, 32)
 
 
+_TINY = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4", "train.network.bottleneck_blocks=1",
+         "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]
+
+
+def _tiny_detector(tmp_path: Path, steps: int, class_overrides: list[str]) -> Path:
+    """A tiny detector trained for ``steps`` steps (tests of the class branch's re-training); its weights."""
+    from pipeline.train import compose_plain
+    from stages.keypoints.training import train
+
+    train(compose_plain(CONF, _TINY + [
+        f"train.out_dir={tmp_path / 'base'}", f"train.steps={steps}", "train.batch_size=2",
+        "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000"] + class_overrides))
+    return tmp_path / "base" / "keypoints.pt"
+
+
 def test_class_branch_training_keeps_detection(tmp_path):
     from pipeline.train import compose_plain
-    from stages.keypoints.training import train, train_class_branch
+    from stages.keypoints.training import train_class_branch
 
-    small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
-             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]
-    base = compose_plain(CONF, small + [
-        f"train.out_dir={tmp_path / 'base'}", "train.steps=2", "train.batch_size=2",
-        "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000",
-        "train.network.class_width=0", "train.network.class_dilations=[1]"])
-    train(base)
-    cfg = compose_plain(CONF, small + [
+    _tiny_detector(tmp_path, 2, ["train.network.class_width=0", "train.network.class_dilations=[1]"])
+    cfg = compose_plain(CONF, _TINY + [
         f"train.out_dir={tmp_path / 'cb'}", f"train.init_weights={tmp_path / 'base' / 'keypoints.pt'}",
         "train.network.class_width=6", "train.network.class_dilations=[1,2]",
         "train.class_branch.drawings=3", "train.class_branch.val_drawings=1", "train.class_branch.epochs=2",
@@ -591,18 +600,11 @@ def test_distilled_class_branch_keeps_detection_and_learns_the_teachers_maps(tmp
     """``train.class_branch.distill``: a narrower class branch trained on the teacher's own class maps
     around its detections; the trunk and H1 are the teacher's, and the student's loss falls."""
     from pipeline.train import compose_plain
-    from stages.keypoints.training import train, train_class_branch
+    from stages.keypoints.training import train_class_branch
     from stages.keypoints.training.loop import distill_patches
 
-    small = ["train.network.level_channels=[4,8,8,8]", "train.network.stem_mid=4",
-             "train.network.bottleneck_blocks=1", "train.val.count=1", "train.val.vector_count=0", "train.num_workers=0"]
-    base = compose_plain(CONF, small + [
-        f"train.out_dir={tmp_path / 'base'}", "train.steps=3", "train.batch_size=2",
-        "train.crop_schedule=[[0,48]]", "train.val.every=1000", "train.log_every=1000",
-        "train.network.class_width=6", "train.network.class_dilations=[1,2]"])
-    train(base)
-    teacher_path = tmp_path / "base" / "keypoints.pt"
-    cfg = compose_plain(CONF, small + [
+    teacher_path = _tiny_detector(tmp_path, 3, ["train.network.class_width=6", "train.network.class_dilations=[1,2]"])
+    cfg = compose_plain(CONF, _TINY + [
         f"train.out_dir={tmp_path / 'cb'}", f"train.init_weights={teacher_path}", "train.vector_prob=0",
         "train.network.class_width=3", "train.network.class_dilations=[1,2]",
         "train.class_branch.distill=true", "train.class_branch.peak_threshold=-1",

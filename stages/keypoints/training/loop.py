@@ -390,6 +390,42 @@ def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: i
     return torch.stack(feats), torch.stack(classes).long(), torch.stack(nears)
 
 
+def _fit_class_branch(head: torch.nn.Module, tensors: list[torch.Tensor], loss_of, cb: dict, after_epoch) -> list[dict]:
+    """Train ``head`` from fresh parameters: Adam, cosine rate from ``cb["lr"]``, ``cb["epochs"]`` passes over
+    ``tensors`` (rows together) in batches of ``cb["batch_size"]``, each batch mirrored or not and turned by
+    a quarter turn (the same for all its tensors: the branch should not learn an orientation the trunk
+    lacks). ``loss_of(*batch)`` gives the loss; ``after_epoch(epoch, mean loss)`` the epoch's record.
+    """
+    for mod in head.modules():
+        if hasattr(mod, "reset_parameters"):
+            mod.reset_parameters()
+    opt = torch.optim.Adam(head.parameters(), lr=float(cb["lr"]))
+    n, bs, epochs = len(tensors[0]), int(cb["batch_size"]), int(cb["epochs"])
+    total = epochs * math.ceil(n / bs)
+    step, history = 0, []
+    head.train()
+    for ep in range(epochs):
+        perm = torch.randperm(n)
+        tot = 0.0
+        for k in range(0, n, bs):
+            idx = perm[k:k + bs]
+            batch = [t[idx] for t in tensors]
+            if bool(torch.randint(0, 2, ())):
+                batch = [torch.flip(t, (-1,)) for t in batch]
+            q = int(torch.randint(0, 4, ()))
+            batch = [torch.rot90(t, q, (-2, -1)) for t in batch]
+            loss = loss_of(*batch)
+            for g in opt.param_groups:
+                g["lr"] = 0.5 * float(cb["lr"]) * (1 + math.cos(math.pi * step / total))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            tot += float(loss.detach()) * len(idx)
+        history.append(after_epoch(ep, tot / n))
+    return history
+
+
 def distill_patches(teacher: KeypointNet, cfg: dict, count: int, seed: int, patch: int, margin: int,
                     part: str = "train") -> tuple[torch.Tensor, torch.Tensor]:
     """Frozen decoder features and the teacher's class maps around the teacher's own detections.
@@ -460,12 +496,6 @@ def _distill_class_branch(model: KeypointNet, cfg: dict, out: Path, t0: float) -
                                     part="valid")
     t_data = time.time() - t0
     head = model.class_head
-    for mod in head.modules():
-        if hasattr(mod, "reset_parameters"):
-            mod.reset_parameters()
-    opt = torch.optim.Adam(head.parameters(), lr=float(cb["lr"]))
-    n, bs, epochs = len(feats), int(cb["batch_size"]), int(cb["epochs"])
-    total = epochs * math.ceil(n / bs)
     c = patch // 2 - margin  # the patch centre in the target square
 
     def centre(fe: torch.Tensor) -> torch.Tensor:
@@ -480,31 +510,15 @@ def _distill_class_branch(model: KeypointNet, cfg: dict, out: Path, t0: float) -
         return {"agreement": float((pred.argmax(1) == want.argmax(1)).float().mean()),
                 "mean_abs": float((pred.clamp(0, 1) - want.clamp(0, 1)).abs().mean())}
 
-    step, history = 0, []
-    head.train()
-    for ep in range(epochs):
-        perm = torch.randperm(n)
-        tot = 0.0
-        for k in range(0, n, bs):
-            idx = perm[k:k + bs]
-            fe, tg = feats[idx].float(), targ[idx].float()
-            # Flips and quarter turns: the branch should not learn an orientation the trunk lacks.
-            if bool(torch.randint(0, 2, ())):
-                fe, tg = torch.flip(fe, (-1,)), torch.flip(tg, (-1,))
-            q = int(torch.randint(0, 4, ()))
-            fe, tg = torch.rot90(fe, q, (-2, -1)), torch.rot90(tg, q, (-2, -1))
-            loss = F.mse_loss(centre(fe), tg)
-            for g in opt.param_groups:
-                g["lr"] = 0.5 * float(cb["lr"]) * (1 + math.cos(math.pi * step / total))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            step += 1
-            tot += float(loss.detach()) * len(idx)
-        rec = {"epoch": ep + 1, "loss": tot / n, "val": fidelity(vfeats, vtarg), "elapsed_s": time.time() - t0}
-        history.append(rec)
+    def after_epoch(ep: int, loss: float) -> dict:
+        rec = {"epoch": ep + 1, "loss": loss, "val": fidelity(vfeats, vtarg), "elapsed_s": time.time() - t0}
         print(f"epoch {ep + 1} loss {rec['loss']:.5f} val agreement {rec['val']['agreement']:.4f} "
               f"mean |diff| {rec['val']['mean_abs']:.4f} ({rec['elapsed_s']:.0f} s)", flush=True)
+        return rec
+
+    n = len(feats)
+    history = _fit_class_branch(head, [feats, targ], lambda fe, tg: F.mse_loss(centre(fe), tg.float()), cb,
+                                after_epoch)
     record = {"mode": "class_branch_distill", "patches": n, "val_patches": len(vfeats), "data_seconds": t_data,
               "seconds": time.time() - t0, "history": history, "parameters_class_branch": count_parameters(head),
               "init_weights": str(tc["init_weights"]), "torch": str(torch.__version__)}
@@ -559,13 +573,7 @@ def train_class_branch(cfg: dict) -> dict:
     counts = torch.bincount(cls[near], minlength=3).double()
     cw = _class_weights(counts, float(cb["balance_power"]))
     head = model.class_head
-    for mod in head.modules():
-        if hasattr(mod, "reset_parameters"):
-            mod.reset_parameters()
-    opt = torch.optim.Adam(head.parameters(), lr=float(cb["lr"]))
-    n, bs, epochs = len(feats), int(cb["batch_size"]), int(cb["epochs"])
-    total = epochs * math.ceil(n / bs)
-    step, history = 0, []
+    n = len(feats)
 
     def centre_accuracy(fe, cl) -> float:
         head.eval()
@@ -575,34 +583,18 @@ def train_class_branch(cfg: dict) -> dict:
         head.train()
         return float((pred == cl[:, c, c]).float().mean())
 
-    head.train()
-    for ep in range(epochs):
-        perm = torch.randperm(n)
-        tot = 0.0
-        for k in range(0, n, bs):
-            idx = perm[k:k + bs]
-            fe = feats[idx].float()
-            if bool(torch.randint(0, 2, ())):  # flips and quarter turns, as in the detector's training
-                fe, c_, nr = torch.flip(fe, (-1,)), torch.flip(cls[idx], (-1,)), torch.flip(near[idx], (-1,))
-            else:
-                c_, nr = cls[idx], near[idx]
-            q = int(torch.randint(0, 4, ()))
-            fe, c_, nr = torch.rot90(fe, q, (-2, -1)), torch.rot90(c_, q, (-2, -1)), torch.rot90(nr, q, (-2, -1))
-            logits = head(fe)
-            ce = F.cross_entropy(logits, c_, weight=cw, reduction="none")
-            loss = ce[nr].mean()
-            for g in opt.param_groups:
-                g["lr"] = 0.5 * float(cb["lr"]) * (1 + math.cos(math.pi * step / total))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            step += 1
-            tot += float(loss.detach()) * len(idx)
-        rec = {"epoch": ep + 1, "loss": tot / n, "val_centre_accuracy": centre_accuracy(vfeats, vcls),
+    def loss_of(fe, c_, nr):
+        ce = F.cross_entropy(head(fe.float()), c_, weight=cw, reduction="none")
+        return ce[nr].mean()
+
+    def after_epoch(ep: int, loss: float) -> dict:
+        rec = {"epoch": ep + 1, "loss": loss, "val_centre_accuracy": centre_accuracy(vfeats, vcls),
                "elapsed_s": time.time() - t0}
-        history.append(rec)
         print(f"epoch {ep + 1} loss {rec['loss']:.4f} val centre acc {rec['val_centre_accuracy']:.3f} "
               f"({rec['elapsed_s']:.0f} s)", flush=True)
+        return rec
+
+    history = _fit_class_branch(head, [feats, cls, near], loss_of, cb, after_epoch)
     val = validation_set(cfg)
     r = evaluate(model, val, cfg["keypoints"], torch.device("cpu"))
     record = {"mode": "class_branch", "keypoints": n, "class_counts": counts.tolist(), "class_weights": cw.tolist(),
