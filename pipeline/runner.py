@@ -236,7 +236,9 @@ def keep_network_memory() -> None:
     of freed memory: for the keypoints child, whose network frees and allocates full-resolution
     activations layer after layer. At 704² a 32-channel map is 63 MB, above the 32-MiB ceiling of
     glibc's mmap threshold, so each was a fresh mapping faulted in page by page (54–139 k faults a
-    pass; stages/DECISIONS.md, engine). The child's memory stays at its peak until it exits."""
+    pass; stages/DECISIONS.md, engine). A process's first pass faults its peak in either way; the
+    passes after it (a multi-drawing run, a large drawing's tiles) reuse it. The child's memory stays
+    at its peak until it exits."""
     reuse_freed_memory()
     if (mallopt := _mallopt()) is not None:
         mallopt(_M_MMAP_MAX, 0)
