@@ -8,6 +8,7 @@ and its downstream tasks are skipped; the other images carry on.
 
 from __future__ import annotations
 
+import functools
 import gc
 import json
 import os
@@ -206,8 +207,9 @@ _HEAP_TUNED = False
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4      # glibc's <malloc.h>
 
 
+@functools.lru_cache(maxsize=1)
 def _mallopt():
-    """glibc's ``mallopt`` (None where the C library has none: not glibc)."""
+    """glibc's ``mallopt`` (None where the C library has none: not glibc); looked up once."""
     import ctypes
 
     try:  # the symbols already loaded into this process, the C library's among them
@@ -223,12 +225,12 @@ def reuse_freed_memory() -> None:
     :data:`HEAP_TRIM_BYTES`) in this process. Once per process; nothing where the C library has no
     ``mallopt`` (not glibc)."""
     global _HEAP_TUNED
-    if _HEAP_TUNED or (mallopt := _mallopt()) is None:
-        _HEAP_TUNED = True
+    if _HEAP_TUNED:
         return
     _HEAP_TUNED = True
-    mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_BYTES)
-    mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_BYTES)
+    if (mallopt := _mallopt()) is not None:
+        mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_BYTES)
+        mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_BYTES)
 
 
 def keep_network_memory() -> None:

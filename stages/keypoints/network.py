@@ -234,10 +234,7 @@ class OneDNNPointwise(nn.Module):
         self.weight, self.bias = conv.weight, conv.bias
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if _plain_inference(x, self.weight):
-            return torch.ops.aten.mkldnn_convolution(x.contiguous(memory_format=torch.channels_last), self.weight,
-                                                     self.bias, [0, 0], [1, 1], [1, 1], 1)
-        return nn.functional.conv2d(x, self.weight, self.bias)
+        return _conv(x, self.weight, self.bias, [0, 0], [1, 1])
 
 
 def use_onednn_pointwise(model: nn.Module) -> nn.Module:
@@ -254,7 +251,6 @@ def use_onednn_pointwise(model: nn.Module) -> nn.Module:
     torch.nn.Module
         ``model``.
     """
-    onednn = torch.backends.mkldnn.is_available()
     for parent in list(model.modules()):
         for name, child in parent.named_children():
             if isinstance(child, nn.Conv2d) and child.kernel_size == (1, 1) and child.stride == (1, 1) \
@@ -264,7 +260,7 @@ def use_onednn_pointwise(model: nn.Module) -> nn.Module:
                 # scaling per output channel into a channels-last tensor takes 3 ms.
                 if child.in_channels == 1:
                     setattr(parent, name, ChannelScale(child))
-                elif onednn:
+                elif _ONEDNN:
                     setattr(parent, name, OneDNNPointwise(child))
     return model
 
@@ -298,6 +294,20 @@ def _plain_inference(x: torch.Tensor, weight: torch.Tensor) -> bool:
     """float32 inference on the CPU: no gradients, no autocast (where ``conv2d`` itself must run)."""
     return (x.dtype == weight.dtype == torch.float32 and x.device.type == "cpu" and not torch.is_grad_enabled()
             and not torch.is_autocast_enabled("cpu"))
+
+
+#: Whether this torch was built with oneDNN (decided once: it cannot change in a process).
+_ONEDNN = torch.backends.mkldnn.is_available()
+
+
+def _conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, padding: list[int],
+          dilation: list[int]) -> torch.Tensor:
+    """A stride-1 ungrouped convolution: by oneDNN on a channels-last input for float32 inference on the
+    CPU (:func:`_plain_inference`, a build with oneDNN), else by ``conv2d``."""
+    if _ONEDNN and _plain_inference(x, weight):
+        return torch.ops.aten.mkldnn_convolution(x.contiguous(memory_format=torch.channels_last), weight, bias,
+                                                 padding, [1, 1], dilation, 1)
+    return nn.functional.conv2d(x, weight, bias, padding=padding, dilation=dilation)
 
 
 class PartwiseFuse(nn.Module):
@@ -334,12 +344,7 @@ class PartwiseFuse(nn.Module):
     def forward(self, parts: list[torch.Tensor]) -> torch.Tensor:
         out = None
         for k, (x, w) in enumerate(zip(parts, self.weights)):
-            b = self.bias if k == 0 else None
-            if _plain_inference(x, w):
-                y = torch.ops.aten.mkldnn_convolution(x.contiguous(memory_format=torch.channels_last), w, b,
-                                                      self.padding, [1, 1], self.dilation, 1)
-            else:
-                y = nn.functional.conv2d(x, w, b, padding=self.padding, dilation=self.dilation)
+            y = _conv(x, w, self.bias if k == 0 else None, self.padding, self.dilation)
             out = y if out is None else out.add_(y)
         return self.rest(out)
 
@@ -359,10 +364,8 @@ def split_concatenations(model: nn.Module) -> nn.Module:
         ``model``.
     """
     for m in model.modules():
-        if isinstance(m, ResNeXtModule) and not isinstance(m.fuse, PartwiseFuse):
-            out = m.skip.out_channels
-            m.fuse = PartwiseFuse(m.fuse, [out] * len(m.branches))
-        elif isinstance(m, _Up) and not isinstance(m.fuse, PartwiseFuse):
-            out = m.expand[0].out_channels
-            m.fuse = PartwiseFuse(m.fuse, [out, out])
+        # Equal parts: the stem's branches all end in its width, a decoder level's upsampled map and skip in its own.
+        parts = len(m.branches) if isinstance(m, ResNeXtModule) else 2 if isinstance(m, _Up) else 0
+        if parts and not isinstance(m.fuse, PartwiseFuse):
+            m.fuse = PartwiseFuse(m.fuse, [m.fuse[0].in_channels // parts] * parts)
     return model
