@@ -149,8 +149,14 @@ def job_output_dir(cfg: DictConfig) -> Path:
     return multirun_folder(Path(str(cfg.output)))
 
 
+#: The running job's folder name in a sweep this module runs itself (:func:`sweep_jobs`); None otherwise.
+_SWEEP_JOB: list[str | None] = [None]
+
+
 def multirun_folder(out: Path) -> Path:
     """``out``, or in a multirun (``-m``) its sub-folder named after the job's overrides."""
+    if _SWEEP_JOB[0] is not None:
+        return out / (_SWEEP_JOB[0] or "default")
     if "hydra" not in sys.modules:   # no Hydra app ran (a cached plain line): not a multirun
         return out
     try:
@@ -447,6 +453,55 @@ def hydra_raises():
             os.environ["HYDRA_FULL_ERROR"] = before
 
 
+def sweep_jobs(config_name: str, args: list[str]) -> list[tuple[list[str], str]] | None:
+    """The jobs of a plain sweep: each job's overrides and its folder name, as Hydra's basic sweeper and
+    its ``override_dirname`` make them; None for any other command line.
+
+    A plain sweep is ``-m`` (or ``--multirun``) and overrides of the task's keys: no other flag, no
+    ``hydra.`` key, no glob. Hydra's own multirun composes every job's config twice from the YAML
+    files (once to check the batch, once to run it), about 0.4 s a composition — as long as a λ job
+    itself once the store holds its upstream stages; the CLI runs such a sweep itself, composing each
+    job through :mod:`pipeline.config_cache`, where a job that changes only values of existing keys
+    sets them on the cached composition of the rest (milliseconds). The folder name follows
+    ``hydra.job.config.override_dirname`` of the app's YAML (``exclude_keys``; ``=`` and ``,``).
+
+    Raises
+    ------
+    UsageError
+        An override that does not parse, in one line.
+    """
+    flags = [a for a in args if a.startswith("-")]
+    if len(flags) != 1 or flags[0] not in ("-m", "--multirun"):
+        return None
+    overrides = [a for a in args if a not in flags]
+    try:
+        from hydra._internal.config_loader_impl import get_overrides_dirname
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+        from hydra.core.override_parser.types import ValueType
+    except ImportError:  # another Hydra: its own multirun
+        return None
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except Exception as exc:  # noqa: BLE001 - hydra raises several kinds; all are usage errors
+        raise UsageError(f"cannot read the arguments: {_first_line(exc)}") from None
+    if any(o.is_hydra_override() or o.value_type == ValueType.GLOB_CHOICE_SWEEP for o in parsed):
+        return None
+    import yaml
+
+    app = yaml.safe_load((CONF_DIR / f"{config_name}.yaml").read_text())
+    naming = (((app.get("hydra") or {}).get("job") or {}).get("config") or {}).get("override_dirname") or {}
+    if set(naming) - {"exclude_keys"}:
+        return None   # a separator of its own: Hydra names the folders
+    exclude = list(naming.get("exclude_keys") or [])
+    try:
+        [batch] = BasicSweeper.split_arguments(parsed, None)
+    except Exception:  # noqa: BLE001 - a sweep the basic sweeper refuses: Hydra says why
+        return None
+    parser = OverridesParser.create()
+    return [(job, get_overrides_dirname(parser.parse_overrides(job), exclude, ",", "=")) for job in batch]
+
+
 def _flag_values(args: list[str]) -> set[str]:
     return {args[i + 1] for i, a in enumerate(args[:-1]) if a in _HYDRA_VALUE_FLAGS}
 
@@ -527,6 +582,7 @@ class ExitCode:
                 sys.exit(2)
         sys.argv[1:] = args
         try:
+            sweep = None if single is None or plain else sweep_jobs(single[1], args)
             if cached is not None:
                 self.job(single[0], cached)
             elif single is not None and plain:
@@ -534,6 +590,8 @@ class ExitCode:
                 from pipeline.config_cache import compose_config
 
                 self.job(job, compose_config(config_name, args))
+            elif sweep is not None:
+                self.sweep(single, sweep)
             else:
                 with no_stray_multirun(), hydra_raises():
                     app()
@@ -551,6 +609,22 @@ class ExitCode:
 
             close_client()
         sys.exit(self.code)
+
+    def sweep(self, single: tuple[Callable[[DictConfig], bool], str], jobs: list[tuple[list[str], str]]) -> None:
+        """Run a plain sweep's jobs (:func:`sweep_jobs`) one after another, each into its folder.
+
+        Every job's config is composed before the first runs, as Hydra's multirun does: one that does not
+        compose is a usage error before any work."""
+        from pipeline.config_cache import compose_config
+
+        job, config_name = single
+        configs = [(compose_config(config_name, overrides), folder) for overrides, folder in jobs]
+        for cfg, folder in configs:
+            _SWEEP_JOB[0] = folder
+            try:
+                self.job(job, cfg)
+            finally:
+                _SWEEP_JOB[0] = None
 
     def console(self, app, single: tuple[Callable[[DictConfig], bool], str] | None = None) -> None:
         """:meth:`main` for a console entry point: the process ends with its status through

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 
@@ -709,6 +710,53 @@ def test_a_plain_command_line_composes_its_config_once(monkeypatch, tmp_path):
     assert check_overrides(args)
     assert not check_overrides(["flow.lam=0.1,0.2"]) and not check_overrides(["hydra.verbose=true"])
     assert not check_overrides(["-m", "flow.lam=1"]) and not check_overrides(["--cfg", "job"])
+
+
+@pytest.mark.parametrize("args", [
+    ["-m", "flow.lam=0.05,0.2", "flow.dt=0.005,0.01", "output=o", "store.path=s"],
+    ["--multirun", "runtime=local", "runtime.cluster=sync,auto", "field.beta=9,11", "runtime.until=graph"],
+    ["-m", "flow.lam=range(1,3)", "export.precision=3", "flow.iterations=7"],
+    ["-m", "output='a b',c"],
+    ["-m"],
+])
+def test_a_plain_sweep_runs_the_jobs_hydra_would_in_their_folders(monkeypatch, tmp_path, args):
+    """A sweep of plain overrides is run by the CLI itself (issue 14: Hydra's multirun composed every job
+    twice, ~0.4 s each): the same jobs in the same order, the same configs and folders as Hydra's
+    basic sweeper and ``override_dirname``, with fewer compositions. An empty config cache of its own."""
+    import hydra
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from omegaconf import OmegaConf
+
+    from pipeline.cli import ExitCode, multirun_folder
+
+    loads = []
+    original = ConfigLoaderImpl.load_configuration
+    monkeypatch.setattr(ConfigLoaderImpl, "load_configuration",
+                        lambda self, *a, **k: loads.append(1) or original(self, *a, **k))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    seen: dict = {}
+
+    def job(cfg):
+        seen[mode].append((str(multirun_folder(Path(str(cfg.output)))), OmegaConf.to_container(cfg)))
+        return False
+
+    @hydra.main(version_base=None, config_path="pkg://conf", config_name="config")
+    def app(cfg):
+        exit_code.job(job, cfg)
+
+    composed = {}
+    for mode, single in (("hydra", None), ("cli", (job, "config"))):
+        seen[mode], exit_code = [], ExitCode("polyvec", positional=True)
+        monkeypatch.setattr("sys.argv", ["polyvec", "drawing.png", *args])
+        loads.clear()
+        with pytest.raises(SystemExit) as done:
+            exit_code.main(app, single=single)
+        assert done.value.code == 0
+        composed[mode] = len(loads)
+    assert seen["cli"] == seen["hydra"] and seen["cli"]
+    assert composed["cli"] < composed["hydra"]
+    assert not (tmp_path / "multirun.yaml").exists()
 
 
 _FINALISED_AT_EXIT = """
