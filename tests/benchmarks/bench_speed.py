@@ -11,7 +11,8 @@ Rows:
   and an empty store;
 - empty store, kernels compiled: the default run (``runtime.cluster=auto``; the same command line again
   on the emptied store, as a user's next drawing) and ``runtime.cluster=sync`` (a new command line);
-- every artifact a hit; a λ re-run (``flow.lam=0.5``: flow → select → export);
+- every artifact a hit; a λ re-run (``flow.lam=0.5``: flow → select → export); a λ sweep of four jobs
+  (``-m flow.lam=0.1,0.2,0.3,0.4``, one process);
 - the drawing upscaled 2× and 4× (bicubic), with per-stage seconds and peak MB (the linear-cost curve);
   their strokes are wide enough for ``prep.downsample`` (7.9 and 15.2 px), so they run at 1/2 and 1/4;
   ``--full-resolution`` adds the same rows with ``prep.downsample.enabled=false`` (the stages' own curve);
@@ -126,6 +127,9 @@ def main() -> None:
         row("again, every artifact a hit", polyvec([img], out, store, env=env))
         row("λ re-run (flow.lam=0.5: flow → select → export)",
             polyvec([img], out, store, "flow.lam=0.5", env=env))
+        # The design card's use: a Hydra sweep of λ on a stored drawing (one process, four jobs).
+        row("λ sweep, 4 jobs (-m flow.lam=0.1,0.2,0.3,0.4)",
+            polyvec([img], out, store, "-m", "flow.lam=0.1,0.2,0.3,0.4", env=env))
         if not args.skip_scale:
             for factor in (2, 4):
                 big = scaled(args.image, factor, tmp)
