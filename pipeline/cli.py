@@ -459,10 +459,10 @@ def sweep_jobs(config_name: str, args: list[str]) -> list[tuple[list[str], str]]
 
     A plain sweep is ``-m`` (or ``--multirun``) and overrides of the task's keys: no other flag, no
     ``hydra.`` key, no glob. Hydra's own multirun composes every job's config twice from the YAML
-    files (once to check the batch, once to run it), about 0.4 s a composition — as long as a λ job
-    itself once the store holds its upstream stages; the CLI runs such a sweep itself, composing each
-    job through :mod:`pipeline.config_cache`, where a job that changes only values of existing keys
-    sets them on the cached composition of the rest (milliseconds). The folder name follows
+    files (once to check the batch, once to run it), about 0.4 s each time, nearly what a λ job on a
+    stored drawing costs; the CLI runs such a sweep itself and composes each job once, through
+    :mod:`pipeline.config_cache` (a job that changes only values of existing keys sets them on the
+    cached composition of the rest: milliseconds). The folder name follows
     ``hydra.job.config.override_dirname`` of the app's YAML (``exclude_keys``; ``=`` and ``,``).
 
     Raises
