@@ -418,6 +418,10 @@ def check_overrides(args: list[str]) -> bool:
     UsageError
         An override that does not parse, in one line.
     """
+    from pipeline.config_cache import plain_values
+
+    if plain_values(args) is not None:   # the simplest key=value overrides: no need to import Hydra
+        return True
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     overrides = [a for a in args if not a.startswith("-") and a not in _flag_values(args)]

@@ -848,6 +848,53 @@ def test_a_composed_config_is_cached_and_composed_again_when_its_files_change(tm
     assert config_cache.config_digest("config", ["flow.lam=0.3"]) != before
 
 
+_SIMPLE_VALUES = ["0", "-0", "+5", "12", "0.5", "-0.25", "+3.0", "true", "false", "null", "abc", "a.b", "a.5",
+                  "x-1e5", "out/svg", "/tmp/x", "my-out", "_x", "a//b", "/"]
+_HYDRAS_VALUES = ["007", "1_000", ".5", "5.", "1e3", "inf", "-inf", "nan", "NaN", "True", "FALSE", "NULL",
+                  "./out", "/tmp/x y", "a,b", "[1,2]", "${oc.env:HOME}", "'q'", "a=b", "é", "a@b", "a b", "",
+                  "0x10", "2x", "-x"]
+
+
+def test_the_simplest_overrides_are_read_as_hydra_reads_them_without_hydra():
+    """pipeline.config_cache.plain_values: where it reads a line (numbers, true/false/null, words and
+    paths), its keys, values and types are Hydra's parser's; anything else (a float Hydra spells otherwise,
+    inf, a capitalised bool, a sweep, a list, a quote, an interpolation, a space, a ``hydra.`` key) is
+    left to Hydra. A λ re-run with a new value then imports no Hydra (issue 14: ~0.13 s)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from pipeline.config_cache import plain_values
+
+    parser = OverridesParser.create()
+    for value in _SIMPLE_VALUES:
+        line = f"flow.lam={value}"
+        [(key, mine)] = plain_values([line])
+        theirs = parser.parse_overrides([line])[0]
+        assert (key, mine, type(mine)) == (theirs.key_or_group, theirs.value(), type(theirs.value())), line
+    for value in _HYDRAS_VALUES:
+        assert plain_values([f"output={value}"]) is None, value
+    assert plain_values(["flow.lam=0.5", "-m"]) is None and plain_values(["hydra.verbose=true"]) is None
+    assert plain_values(["+flow.x=1"]) is None and plain_values(["~flow.lam"]) is None
+    assert plain_values([]) == [] and plain_values(["runtime=local", "output=a/b"]) == [("runtime", "local"),
+                                                                                       ("output", "a/b")]
+
+
+def test_a_lambda_rerun_with_a_new_value_imports_no_hydra(tmp_path):
+    """Once a line's base is cached, a new value of a plain key is checked, composed and run without Hydra."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    code = ("import sys\nfrom pipeline.cli import check_overrides\nfrom pipeline.config_cache import compose_config\n"
+            "args = ['output=o', sys.argv[1]]\nassert check_overrides(args)\n"
+            "print(compose_config('config', args).flow.lam, 'hydra' in sys.modules)\n")
+    run = [subprocess.run([sys.executable, "-c", code, f"flow.lam={lam}"], capture_output=True, text=True, env=env)
+           for lam in ("0.3", "0.45")]
+    assert [r.returncode for r in run] == [0, 0], run[0].stderr + run[1].stderr
+    assert run[0].stdout.split() == ["0.3", "True"]      # the first line composes its base with Hydra
+    assert run[1].stdout.split() == ["0.45", "False"]    # the next value: no Hydra at all
+
+
 def test_a_line_that_changes_only_values_starts_from_the_cached_base(tmp_path, monkeypatch):
     """pipeline.config_cache: ``output=…``, ``store.path=…``, ``flow.lam=…`` set on the cached
     composition of the other overrides give Hydra's config exactly (no composition at all); a group, a
