@@ -7,7 +7,10 @@ path's blocks — and its flowed curve — are bit-identical whichever other pat
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -117,9 +120,33 @@ def _prepare_one(xy: np.ndarray, w: np.ndarray, dd: np.ndarray, params: FlowConf
     return z, centres, csig, cdist, home
 
 
+#: The last prepared batches, by a digest of their inputs: the jobs of a λ or time-step sweep flow the
+#: same paths (preparation does not depend on ``lam``, ``dt`` or ``iterations``). Bounded by count and
+#: by bytes; the kernel writes ``z`` and ``home``, so a hit hands out copies of those two.
+_PREPARED: "OrderedDict[bytes, _Batch]" = OrderedDict()
+_PREPARED_LOCK = threading.Lock()
+PREPARED_BATCHES = 2
+PREPARED_MAX_BYTES = 64 << 20
+
+
+def _preparation_digest(xys, widths, interest, params: FlowConfig) -> bytes:
+    """Digest of everything :func:`_prepare_one` and :func:`_safe_radius` read."""
+    b = params.barrier
+    h = hashlib.blake2b(repr((params.spacing, b.sigma_scale, b.sigma_min, b.spacing, b.cutoff, len(xys))).encode())
+    for xy, w, dd in zip(xys, widths, interest):
+        for a in (xy, w, dd):
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            h.update(repr(a.shape).encode())
+            h.update(a.data)
+    return h.digest()
+
+
 def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: list[np.ndarray],
                   params: FlowConfig) -> _Batch:
     """Resample every path and place its barrier centres (each path on its own: :func:`_prepare_one`).
+
+    The result of the same inputs is reused from :data:`_PREPARED` (a sweep's next job): 0.12 s of the
+    scanned elephant's 0.8-s flow.
 
     Parameters
     ----------
@@ -134,6 +161,24 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
     -------
     _Batch
     """
+    key = _preparation_digest(xys, widths, interest, params)
+    with _PREPARED_LOCK:
+        hit = _PREPARED.get(key)
+        if hit is not None:
+            _PREPARED.move_to_end(key)
+    if hit is not None:
+        return replace(hit, z=hit.z.copy(), home=hit.home.copy())
+    batch = _prepare_all(xys, widths, interest, params)
+    size = sum(a.nbytes for a in vars(batch).values())
+    if size <= PREPARED_MAX_BYTES:
+        with _PREPARED_LOCK:
+            _PREPARED[key] = replace(batch, z=batch.z.copy(), home=batch.home.copy())
+            while len(_PREPARED) > PREPARED_BATCHES:
+                _PREPARED.popitem(last=False)
+    return batch
+
+
+def _prepare_all(xys, widths, interest, params: FlowConfig) -> _Batch:
     parts = [_prepare_one(np.asarray(xy, dtype=np.float64).reshape(-1, 2), np.asarray(w, dtype=np.float64).ravel(),
                           np.asarray(dd, dtype=np.float64).ravel(), params)
              for xy, w, dd in zip(xys, widths, interest)]

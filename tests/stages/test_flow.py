@@ -464,3 +464,30 @@ def test_with_the_real_field_a_path_through_an_x_stays_on_its_branch():
         xy0, nrm, s = noisy_path(a, b, noise=0.3, seed=k)
         res = _run_one(c0, c2, xy0, interest=np.minimum(np.abs(s - s[-1] / 2), np.minimum(s, s[-1] - s)))
         assert _line_distance(res.curves[0], a, nrm).max() < 0.5
+
+
+def test_a_sweeps_next_job_reuses_the_prepared_paths_and_flows_the_same(monkeypatch):
+    """The paths prepared for one flow are reused by the next with the same paths and preparation
+    settings (a λ sweep's next job); the kernel flows its own copy of the vertices, so the first job's
+    settings flowed again give the first job's curves bit for bit. Another spacing prepares anew."""
+    from dataclasses import replace
+
+    from stages.flow import paths
+
+    d = synthetic.cross()
+    c0, c2, _ = analytic_field(d)
+    xys = [noisy_path(a, b, n=30, noise=0.4, seed=k)[0] for k, (a, b) in enumerate(d.strokes)]
+    widths, interest = [np.full(30, 3.0)] * len(xys), [np.full(30, 30.0)] * len(xys)
+    prepared = []
+    original = paths._prepare_all
+    monkeypatch.setattr(paths, "_prepare_all", lambda *a: prepared.append(1) or original(*a))
+    paths._PREPARED.clear()
+    p = params()
+    first = flow.polyvector_flow(c0, c2, xys, widths, interest, p)
+    other = flow.polyvector_flow(c0, c2, xys, widths, interest, replace(p, lam=p.lam * 4))
+    again = flow.polyvector_flow(c0, c2, xys, widths, interest, p)
+    assert len(prepared) == 1
+    assert all(np.array_equal(a, b) for a, b in zip(first.curves, again.curves))
+    assert not all(np.array_equal(a, b) for a, b in zip(first.curves, other.curves))
+    flow.polyvector_flow(c0, c2, xys, widths, interest, replace(p, spacing=p.spacing * 1.5))
+    assert len(prepared) == 2 and len(paths._PREPARED) == paths.PREPARED_BATCHES
