@@ -425,8 +425,9 @@ def check_overrides(args: list[str]) -> bool:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     overrides = [a for a in args if not a.startswith("-") and a not in _flag_values(args)]
+    parser = OverridesParser.create()
     try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
+        parsed = parser.parse_overrides(overrides)
     except Exception as exc:  # noqa: BLE001 - hydra raises several kinds; all are usage errors
         raise UsageError(f"cannot read the arguments: {_first_line(exc)} (quote odd characters: key='value', "
                          "or give input paths as plain arguments)") from None
@@ -485,8 +486,9 @@ def sweep_jobs(config_name: str, args: list[str]) -> list[tuple[list[str], str]]
         from hydra.core.override_parser.types import ValueType
     except ImportError:  # another Hydra: its own multirun
         return None
+    parser = OverridesParser.create()
     try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
+        parsed = parser.parse_overrides(overrides)
     except Exception as exc:  # noqa: BLE001 - hydra raises several kinds; all are usage errors
         raise UsageError(f"cannot read the arguments: {_first_line(exc)}") from None
     if any(o.is_hydra_override() or o.value_type == ValueType.GLOB_CHOICE_SWEEP for o in parsed):
@@ -502,7 +504,6 @@ def sweep_jobs(config_name: str, args: list[str]) -> list[tuple[list[str], str]]
         [batch] = BasicSweeper.split_arguments(parsed, None)
     except Exception:  # noqa: BLE001 - a sweep the basic sweeper refuses: Hydra says why
         return None
-    parser = OverridesParser.create()
     return [(job, get_overrides_dirname(parser.parse_overrides(job), exclude, ",", "=")) for job in batch]
 
 

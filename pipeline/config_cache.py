@@ -151,6 +151,7 @@ _INT = re.compile(r"[+-]?(0|[1-9][0-9]*)")
 _FLOAT = re.compile(r"[+-]?(0|[1-9][0-9]*)\.[0-9]+")
 _WORD = re.compile(r"[A-Za-z_/][A-Za-z0-9_./-]*")
 _WORDS = {"true": True, "false": False, "null": None}
+_TYPED_WORDS = (*_WORDS, "inf", "nan")   # Hydra types these in any case (``True``, ``NaN``): not plain words
 
 
 def plain_values(overrides: list[str]) -> list[tuple[str, object]] | None:
@@ -158,8 +159,8 @@ def plain_values(overrides: list[str]) -> list[tuple[str, object]] | None:
     override grammar reads them, without importing Hydra (its parser costs ~0.13 s of a λ re-run);
     None when any is not (Hydra parses the line then).
 
-    The kinds: a dotted key of identifiers, not Hydra's own (``hydra.…``); a value that is a decimal int (``-3``, ``12``), a decimal
-    with a point (``0.25``), ``true``, ``false``, ``null``, or a word or path of letters, digits and
+    The kinds: a dotted key of identifiers, not Hydra's own (``hydra.…``); a value that is a decimal int
+    (``-3``, ``12``), a decimal with a point (``0.25``), ``true``, ``false``, ``null``, or a word or path of letters, digits and
     ``_ . / -`` that starts with a letter, ``_`` or ``/`` and is not one of Hydra's ``inf`` / ``nan``.
     """
     out = []
@@ -173,7 +174,7 @@ def plain_values(overrides: list[str]) -> list[tuple[str, object]] | None:
             out.append((key, float(value)))
         elif value in _WORDS:
             out.append((key, _WORDS[value]))
-        elif _WORD.fullmatch(value) and value.lower() not in ("true", "false", "null", "inf", "nan"):
+        elif _WORD.fullmatch(value) and value.lower() not in _TYPED_WORDS:
             out.append((key, value))
         else:
             return None

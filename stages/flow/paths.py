@@ -167,15 +167,20 @@ def prepare_paths(xys: list[np.ndarray], widths: list[np.ndarray], interest: lis
         if hit is not None:
             _PREPARED.move_to_end(key)
     if hit is not None:
-        return replace(hit, z=hit.z.copy(), home=hit.home.copy())
+        return _own_copy(hit)
     batch = _prepare_all(xys, widths, interest, params)
     size = sum(a.nbytes for a in vars(batch).values())
     if size <= PREPARED_MAX_BYTES:
         with _PREPARED_LOCK:
-            _PREPARED[key] = replace(batch, z=batch.z.copy(), home=batch.home.copy())
+            _PREPARED[key] = _own_copy(batch)
             while len(_PREPARED) > PREPARED_BATCHES:
                 _PREPARED.popitem(last=False)
     return batch
+
+
+def _own_copy(batch: _Batch) -> _Batch:
+    """``batch`` with its own copy of the arrays the kernel writes (``z``, ``home``); the rest shared."""
+    return replace(batch, z=batch.z.copy(), home=batch.home.copy())
 
 
 def _prepare_all(xys, widths, interest, params: FlowConfig) -> _Batch:

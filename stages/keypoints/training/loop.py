@@ -346,6 +346,16 @@ def _class_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
     return (cw / cw.mean()).float()
 
 
+def _padded_trunk(model: KeypointNet, x: np.ndarray, r: int):
+    """``model.trunk`` of drawing ``x`` padded by ``r`` (so that a patch of radius ``r`` around any pixel lies
+    inside the computed features; zeros beyond the drawing, as the stage's padding), then to the
+    network's multiple; the feature maps start at pixel (-r, -r) of the drawing."""
+    m = model.multiple
+    h, w = x.shape
+    xp = np.pad(x, ((r, r + m - (h + 2 * r) % m), (r, r + m - (w + 2 * r) % m)))
+    return model.trunk(torch.from_numpy(xp)[None, None])
+
+
 def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: int
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Frozen decoder features around the keypoints of ``count`` generated drawings.
@@ -375,10 +385,7 @@ def class_patches(model: KeypointNet, cfg: dict, count: int, seed: int, patch: i
             if not len(s.points):
                 continue
             x, t, b = prepare_sample(s, cfg)
-            m = model.multiple
-            h, w = x.shape
-            xp = np.pad(x, ((r, r + m - (h + 2 * r) % m), (r, r + m - (w + 2 * r) % m)))
-            f = model.trunk(torch.from_numpy(xp)[None, None])[0][0]
+            f = _padded_trunk(model, x, r)[0][0]
             tp = np.pad(t, ((0, 0), (r, r), (r, r)))
             bp = np.pad(b, ((r, r), (r, r)))
             for px, py in s.points:
@@ -454,7 +461,7 @@ def distill_patches(teacher: KeypointNet, cfg: dict, count: int, seed: int, patc
     pool = vector_pool(vcfg, part) if vprob > 0 else {}
     busy = stroke_count_cdf(pool.get("ndjson") or [], stroke_count_power(vcfg))
     thr = float(tc["class_branch"]["peak_threshold"])
-    r, m = patch // 2, teacher.multiple
+    r = patch // 2
     feats, targets = [], []
     teacher.eval()
     with torch.inference_mode():
@@ -463,10 +470,7 @@ def distill_patches(teacher: KeypointNet, cfg: dict, count: int, seed: int, patc
                  if pool and rng.random() < vprob else None) or generate(rng, gcfg, rules)
             x, _t, band = prepare_sample(s, cfg)
             h, w = x.shape
-            # Padded by r so that every patch lies inside the computed features (zeros beyond the
-            # drawing, as the stage's padding), then to the network's multiple.
-            xp = np.pad(x, ((r, r + m - (h + 2 * r) % m), (r, r + m - (w + 2 * r) % m)))
-            f = teacher.trunk(torch.from_numpy(xp)[None, None])[0]
+            f = _padded_trunk(teacher, x, r)[0]
             h1 = torch.tanh(teacher.side[0](f))[0, 0, r:r + h, r:r + w].numpy()
             cls = torch.tanh(teacher.class_head(f))[0]
             pts, _, _ = find_keypoints(np.broadcast_to(h1, (4, h, w)), thr, int(kc["min_distance"]), band > 0, False)
