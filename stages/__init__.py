@@ -13,3 +13,10 @@ See ``stages/INTERFACES.md`` for what every artifact holds and ``stages/DECISION
 measurements behind the stages' choices. Shared plane geometry is in :mod:`stages.geometry`; the
 training of the keypoint network is apart, in :mod:`stages.keypoints.training`.
 """
+
+import os
+
+# numba formats an error message, in colour through colorama, for every overload it tries and rejects
+# while typing a kernel; without the colour a first run's compiles take ~8 % less (stages/DECISIONS.md).
+# Set before any stage imports numba, which reads it once.
+os.environ.setdefault("NUMBA_DISABLE_ERROR_MESSAGE_HIGHLIGHTING", "1")

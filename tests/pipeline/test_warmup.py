@@ -107,3 +107,16 @@ class _SleepPopen(subprocess.Popen):
     def __init__(self, args, **kwargs):
         _SleepPopen.calls.append(list(args))
         super().__init__(["sleep", "60"], **kwargs)
+
+
+def test_kernels_compile_without_colouring_numbas_rejected_overload_messages():
+    """numba formats a message for each overload it rejects while typing; colouring them (colorama)
+    cost ~8 % of a first run's compiles. A process that runs stages or warm-ups must have it off, also
+    when the user's environment has none of numba's variables."""
+    code = ("import pipeline.warmup, stages.graph.trace, stages.flow.kernel\n"
+            "from numba.core import errors\n"
+            "print(type(errors.termcolor()).__name__)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_DISABLE")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.stdout.strip() == "NOPColorScheme"
