@@ -227,11 +227,10 @@ def predicted_keypoints(store: ArtifactStore, keys: dict[str, str]) -> tuple[np.
     if "keypoints" not in keys:
         return None
     art = store.load("keypoints", keys["keypoints"])
-    # A supersampled or downsampled prep puts the keypoints at `scale` × the drawing's pixels.
-    from stages.prep import internal_scale
+    # A supersampled, downsampled or cropped prep puts the keypoints at `scale` × (the drawing's pixels − origin).
+    from stages.prep import to_source
 
-    scale = internal_scale(art.data)
-    pts = np.asarray(art.arrays.get("points", np.zeros((0, 2))), dtype=np.float64).reshape(-1, 2) / scale
+    pts = to_source(art.arrays.get("points", np.zeros((0, 2))), art.data)
     types = np.asarray(art.arrays.get("types", np.zeros(0)), dtype=np.int64).reshape(-1)
     return pts, types
 

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from stages.evaluate.keypoints import TYPES, MatchResult, f1_authors, f1_authors_per_class, match_keypoints, read_pts
-from stages.prep import internal_scale
+from stages.prep import to_internal, to_source
 
 if TYPE_CHECKING:
     from stages.keypoints.training.config import LabelRules
@@ -127,8 +127,8 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
         a = kp_stage.run(kp_cfg, prep=p)
         dt = time.perf_counter() - t0
         t_total += dt
-        scale = internal_scale(p.data)  # a supersampled or downsampled prep: internal pixels
-        pts, types = np.asarray(a["points"], np.float64) / scale, a["types"]
+        # a supersampled, downsampled or cropped prep: internal pixels
+        pts, types = to_source(a["points"], p.data), a["types"]
         weights_name = a.data["weights"]
         h = int(p.data["height"])
         h_pad = h + (8 - h % 8)  # the authors' padded network input height
@@ -144,8 +144,8 @@ def evaluate_folder(folder: Path, kp_overrides: dict, radius: float = 5.0, limit
             from PIL import Image
 
             render_dir.mkdir(parents=True, exist_ok=True)
-            img = kp_stage.render_keypoints(p["grey"], a["heatmaps"], pts * scale, types)
-            Image.fromarray(_with_gt(img, gpts * scale)).save(render_dir / f"{png.stem}_keypoints.png")
+            img = kp_stage.render_keypoints(p["grey"], a["heatmaps"], np.asarray(a["points"], np.float64), types)
+            Image.fromarray(_with_gt(img, to_internal(gpts, p.data))).save(render_dir / f"{png.stem}_keypoints.png")
     n = max(len(cases), 1)
     summary = {
         "cases": len(cases),

@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.registry import STAGES, default_config
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
-from stages.prep import internal_scale, source_size
+from stages.prep import internal_origin, internal_scale, source_size, to_internal
 from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
@@ -189,7 +189,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     -------
     dict
         ``width``, ``height`` (of the internal resolution), ``scale`` (internal pixels per drawing
-        pixel: prep's supersampling), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
+        pixel: prep's supersampling), ``origin_x``, ``origin_y`` (the internal picture's corner in the
+        drawing: prep's crop), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
         "on"}`` (SVG markup in image pixel coordinates); ``keypoints``: the editable points
         ``{"x", "y", "orig", "cur"}`` (``orig`` 0 = added, ``cur`` 0 = removed); ``stages``: the side
         panel rows; ``counts``.
@@ -199,8 +200,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     grey = np.asarray(prep["grey"], np.float32)
     mask = np.asarray(prep["mask"], bool)
     h, w = grey.shape
-    # A supersampled or downsampled prep: the page shows the internal resolution; exported curves
-    # and saved edits are in the drawing's pixels (× / ÷ scale).
+    # A supersampled, downsampled or cropped prep: the page shows the internal picture; exported curves
+    # and saved edits are in the drawing's pixels (internal = scale · (drawing − origin)).
     scale = internal_scale(prep.data)
     layers: list[dict] = []
 
@@ -262,7 +263,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         ex = store.load("export", keys["export"]).data.get("curves", [])
         body, ends = [], []
         for i, c in enumerate(ex):
-            pts = np.asarray(c["points"], np.float64) * scale  # exported in the drawing's pixels
+            pts = to_internal(c["points"], prep.data)  # exported in the drawing's pixels
             body.append(f'<path d="{_polyline_d([pts])}" stroke="{_hex(PALETTE[i % len(PALETTE)])}"/>')
             for j, p in ((0, pts[0]), (1, pts[-1])):
                 t = int(c.get("end_types", [0, 0])[j])
@@ -294,7 +295,9 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         rows.append({"stage": stage, "key": keys[stage][:12], "seconds": m.get("duration_s"),
                      "peak_mb": m.get("peak_rss_mb"), "config": _config_diff(stage, m.get("config", {}))})
     source_h, source_w = source_size(prep.data, (h, w))
-    return {"width": w, "height": h, "scale": scale, "source_width": source_w, "source_height": source_h,
+    ox, oy = map(float, internal_origin(prep.data))
+    return {"width": w, "height": h, "scale": scale, "origin_x": ox, "origin_y": oy,
+            "source_width": source_w, "source_height": source_h,
             "stem": image.stem, "image": str(image), "layers": layers,
             "keypoints": kps, "stages": rows, "counts": counts}
 
@@ -315,7 +318,7 @@ background:#fffc;padding:2px 6px;border:1px solid #ccc}
 _JS = r"""
 (function(){
 const D=JSON.parse(document.getElementById('pv-data').textContent);
-const W=D.width,H=D.height,S=D.scale||1,svg=document.getElementById('view'),kpg=document.getElementById('kp-layer');
+const W=D.width,H=D.height,S=D.scale||1,OX=D.origin_x||0,OY=D.origin_y||0,svg=document.getElementById('view'),kpg=document.getElementById('kp-layer');
 const COL={1:'#1e5aff',3:'#ff8c00',5:'#00aa3c',0:'none'},NAME={1:'endpoint',3:'junction',5:'corner'};
 const CYCLE={1:3,3:5,5:0,0:1};let vb={x:0,y:0,w:W,h:H};const pts=D.keypoints;
 function scale(){const m=svg.getScreenCTM();return m?m.a:1}
@@ -337,7 +340,7 @@ function draw(){kpg.textContent='';const s=scale();pts.forEach((p,i)=>{
 function typeVis(){[1,3,5].forEach(t=>{const on=document.getElementById('show-t'+t).checked;
  kpg.querySelectorAll('.ty'+t).forEach(c=>c.style.display=on?'':'none')})}
 function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:D.source_width,
- height:D.source_height,added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S,y=p.y/S;
+ height:D.source_height,added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S+OX,y=p.y/S+OY;
  if(p.orig===0){if(p.cur)r.added.push({x:+x.toFixed(1),y:+y.toFixed(1),type:NAME[p.cur]})}
  else if(p.cur===0)r.removed.push({x:x,y:y});else if(p.cur!==p.orig)r.retyped.push({x:x,y:y,type:NAME[p.cur]})});return r}
 function count(){const e=edits();document.getElementById('edit-count').textContent=
@@ -391,8 +394,8 @@ def render_html(data: dict) -> str:
         f'</code></td></tr>' for r in data["stages"])
     counts = "".join(f"<tr><td>{esc(k)}</td><td>{esc(json.dumps(v) if isinstance(v, dict) else str(v))}</td></tr>"
                      for k, v in data["counts"].items())
-    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "source_width", "source_height", "stem", "image",
-                                                 "keypoints")})
+    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "origin_x", "origin_y", "source_width",
+                                                 "source_height", "stem", "image", "keypoints")})
     payload = payload.replace("</", "<\\/")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>polyvec: {esc(data["stem"])}</title><style>{_CSS}</style></head>

@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.store import ArtifactStore
 from stages.artifact import unpack_ragged
-from stages.prep import internal_scale
+from stages.prep import to_internal
 
 PALETTE = np.array([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
                     [70, 160, 160], [240, 50, 230], [128, 128, 0], [0, 0, 128], [170, 110, 40]], np.uint8)
@@ -47,15 +47,15 @@ def draw_polylines(rgb: np.ndarray, polylines, scale: int, colors=None, dots: bo
     return out.astype(np.uint8)
 
 
-def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict, internal: float = 1.0):
+def _curves(store: ArtifactStore, stage: str, key: str, manifest: dict, prep_data: dict | None = None):
     """Polylines and their labels for flow / select / export artifacts, in prep's pixels.
 
-    ``internal``: prep's :func:`~stages.prep.internal_scale`; exported curves are in the drawing's
-    pixels, the others (and the picture) in prep's.
+    ``prep_data``: prep's ``data`` (its scale and crop origin, :func:`~stages.prep.to_internal`);
+    exported curves are in the drawing's pixels, the others (and the picture) in prep's.
     """
     if stage == "export":
         art = store.load(stage, key)
-        return [np.asarray(c["points"], np.float64) * internal for c in art.data["curves"]]
+        return [to_internal(c["points"], prep_data or {}) for c in art.data["curves"]]
     if stage == "flow":
         art = store.load(stage, key)
         return unpack_ragged(art["curve_xy"], art["curve_xy_offsets"])
@@ -112,7 +112,7 @@ def render_artifact(store: ArtifactStore, stage: str, key: str, scale: int = 2) 
 
         return render_topology(grey, art, scale=scale)
     rgb = grey_to_rgb(grey, scale)
-    return draw_polylines(rgb, _curves(store, stage, key, manifest, internal_scale(prep.data)), scale)
+    return draw_polylines(rgb, _curves(store, stage, key, manifest, prep.data), scale)
 
 
 def _find_input(store: ArtifactStore, manifest: dict, stage: str) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 
 from stages.artifact import Artifact
 from stages.errors import InputError
-from stages.prep import internal_scale
+from stages.prep import internal_origin, internal_scale, to_internal
 
 FORMAT = "polyvec-keypoint-edits"
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
@@ -205,17 +205,17 @@ def run(cfg: dict, keypoints: Artifact) -> Artifact:
     log: list[dict] = []
     if raw is not None:
         edits = validate_edits(raw)
-        # Edits are in the drawing's pixels; a supersampled or downsampled prep put the keypoints at
-        # `scale` × those coordinates.
+        # Edits are in the drawing's pixels; a supersampled, downsampled or cropped prep put the keypoints
+        # at `scale` × (those − origin).
         scale = internal_scale(keypoints.data)
         h, w = keypoints.data.get("height"), keypoints.data.get("width")
         if h is not None and w is not None:
             if (edits["width"], edits["height"]) != (None, None) and (edits["width"], edits["height"]) != (w, h):
                 raise InputError(f"the edits are for a {edits['width']}×{edits['height']} drawing, "
                                  f"this one is {w}×{h}")
-        if scale != 1:
-            edits = dict(edits, **{op: [(x * scale, y * scale) + tuple(rest) for x, y, *rest in edits[op]]
-                                   for op in ("added", "removed", "retyped")})
+        if scale != 1 or internal_origin(keypoints.data).any():
+            edits = dict(edits, **{op: [tuple(map(float, to_internal((x, y), keypoints.data)[0])) + tuple(rest)
+                                        for x, y, *rest in edits[op]] for op in ("added", "removed", "retyped")})
         points, types, scores, log = apply_edits(points, types, scores, edits, float(cfg["match_radius"]) * scale)
     n_det = len(points) - sum(e["op"] == "added" for e in log)
     edited = {e["keypoint"] for e in log if e["op"] == "retyped"}

@@ -41,7 +41,7 @@ from stages.keypoints import (PACKAGED_PROCEDURAL, PACKAGED_TYPE_CLASSIFIER, PAC
                               _file_hash)
 from stages.keypoints.codes import JUNCTION, TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
-from stages.prep import internal_scale, source_size
+from stages.prep import internal_origin, internal_scale, source_size
 
 # torch and the modules that need it are imported inside load_model/run, not here: rendering keypoints
 # (polyvec-inspect) and typing them from stored heatmaps need no torch, and neither does the engine's
@@ -222,6 +222,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
                           "precision": "bf16" if bf16 else "fp32", "scale": internal_scale(prep.data),
+                          "origin": internal_origin(prep.data).tolist(),
                           "height": height, "width": width}, notes=notes)
 
 

@@ -9,15 +9,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "9"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "10"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
 #                        lighting is divided out (prep.lighting); 9: light strokes on dark paper are
-#                        inverted (prep.invert), white line art on a transparent page read over black
+#                        inverted (prep.invert), white line art on a transparent page read over black;
+#                     10: a drawing on a much larger page is cropped to its ink (prep.crop)
 
 
 @dataclass
@@ -77,6 +80,19 @@ class DownsampleConfig:
 
 
 @dataclass
+class CropConfig:
+    """``prep.crop``: work on the ink's bounding box when the drawing covers a small part of the page."""
+
+    enabled: bool
+    margin_px: int
+    max_area_fraction: float
+
+    def __post_init__(self) -> None:
+        if self.margin_px < 0 or not 0 < self.max_area_fraction <= 1:
+            raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
+
+
+@dataclass
 class PrepConfig:
     """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
 
@@ -94,6 +110,7 @@ class PrepConfig:
     contrast: ContrastConfig
     supersample: SupersampleConfig
     downsample: DownsampleConfig
+    crop: CropConfig
 
     def __post_init__(self) -> None:
         if self.invert not in ("auto", "always", "never"):
@@ -103,8 +120,24 @@ class PrepConfig:
 def internal_scale(data: dict) -> float:
     """Internal pixels per drawing pixel of a prep or keypoints artifact (its ``data``): 1, the
     factor of a supersampled prep (thin aliased strokes, 2), or 1/k of a downsampled one (wide
-    strokes); later stages' coordinates are the drawing's times this."""
+    strokes); later stages' coordinates are the drawing's times this, from :func:`internal_origin`."""
     return float(data.get("scale", 1) or 1)
+
+
+def internal_origin(data: dict) -> np.ndarray:
+    """(x, y) in the drawing's pixels of the internal picture's corner: (0, 0), or where prep cropped a
+    drawing out of a larger page (``origin`` of a prep or keypoints artifact's ``data``)."""
+    return np.asarray(data.get("origin") or (0, 0), np.float64)
+
+
+def to_source(points, data: dict) -> np.ndarray:
+    """(N, 2) internal (x, y) → the drawing's pixels: ``internal / scale + origin``."""
+    return np.asarray(points, np.float64).reshape(-1, 2) / internal_scale(data) + internal_origin(data)
+
+
+def to_internal(points, data: dict) -> np.ndarray:
+    """(N, 2) (x, y) in the drawing's pixels → internal: ``(source − origin) · scale``."""
+    return (np.asarray(points, np.float64).reshape(-1, 2) - internal_origin(data)) * internal_scale(data)
 
 
 def source_size(data: dict, internal_shape: tuple[int, int]) -> tuple[int, int]:

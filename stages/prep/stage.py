@@ -67,6 +67,16 @@ Choices made on purpose
   and the cross-sections cost grows with the lanes across a stroke times its length (a 4× scan took
   157 s and 3.5 GB), not with what the drawing shows; the curves come back in the drawing's pixels
   (``scale`` = 1/k).  Chosen on validation cases re-rendered 3× larger (stages/DECISIONS.md).
+* **A drawing on a larger page is cropped to its ink** (``crop``; issue #14, not in the references).
+  When the band's bounding box grown by ``margin_px`` keeps at most ``max_area_fraction`` of the
+  image (a sketch on a scanned sheet), the inverted and lighting-flattened grey is cut to it, its
+  contrast stretch and band are found again there (on a sheet the page's percentiles are the paper's:
+  ink under 0.5 % of the pixels stretched the paper's texture into the band), the resampling follows,
+  and every later stage works on the box: ``origin`` in the data is its corner in the drawing's pixels (internal
+  ``x = scale · (x_source − origin)``), which the export maps back.  Why: the field, graph, topology and
+  network cost grew with the page, not the ink (the elephant on an A4 sheet at 300 dpi: 33 s against
+  8 s for the elephant alone; stages/DECISIONS.md).  A drawing that fills its image is left as it is,
+  so its results do not move; a cropped one is processed as the same drawing cut out by hand.
 """
 
 from __future__ import annotations
@@ -408,12 +418,59 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             notes.append(f"uneven lighting (the paper's brightness varies by {variation:.0%}): divided out "
                          "(prep.lighting)")
         grey = lit
+    lit = grey
+    grey, mask, band_data = _grey_and_band(lit, c)
+    h, w = grey.shape
+    origin = None
+    if c.crop.enabled and (box := ink_box(mask, c.crop.margin_px, c.crop.max_area_fraction)) is not None:
+        y0, y1, x0, x1 = box
+        origin = [int(x0), int(y0)]
+        # The box's own contrast stretch and band: on a sheet the page's percentiles are the paper's
+        # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
+        grey, mask, band_data = _grey_and_band(lit[y0:y1, x0:x1], c)
+        notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
+                     f"{x1 - x0}×{y1 - y0} box at ({x0}, {y0}) (prep.crop; the curves are mapped back)")
+    scale, width = 1.0, None
+    if c.supersample.enabled or c.downsample.enabled:
+        width = stroke_width(mask)
+    if c.supersample.enabled:
+        soft = soft_edges(grey, mask)
+        factor, note = supersample_factor(width, soft, grey.shape, c.supersample)
+        if note:
+            notes.append(note)
+        if factor > 1:
+            scale = float(factor)
+            grey = supersample(grey, factor, c.supersample.blur)
+            notes.append(f"{_width_words(width, mask)}: working at {factor}x resolution "
+                         "(prep.supersample; the curves are mapped back)")
+    if scale == 1.0 and c.downsample.enabled:
+        k = downsample_factor(width, c.downsample)
+        if k > 1:
+            scale = 1.0 / k
+            grey = downsample(grey, k)
+            notes.append(f"{_width_words(width, mask)}: working at 1/{k} resolution "
+                         "(prep.downsample; the curves are mapped back)")
+    if scale != 1.0:
+        # The band again at the internal resolution; specks are dropped by their area in the drawing.
+        mask = narrow_band(_smoothed(grey, band_data["band_smoothing"] * scale), band_data["band_threshold"],
+                           c.repair_passes, c.repair_neighbours,
+                           max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
+        if not mask.any():
+            raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
+    return Artifact(arrays={"grey": grey, "mask": mask},
+                    data={"height": h, "width": w, "scale": scale, "origin": origin, "stroke_width": width, "mode": mode,
+                          **band_data}, notes=notes)
+
+
+def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The contrast-normalised grey of the (inverted, lighting-flattened) ``lit`` and its band, with the
+    paper statistics and threshold that found it (the ``data`` of the artifact)."""
     if c.contrast.enabled:
-        grey = normalise_contrast(grey, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
+        grey = normalise_contrast(lit, c.contrast.low_percentile, c.contrast.high_percentile, c.contrast.min_contrast)
     else:
-        if grey.max() - grey.min() < c.contrast.min_contrast:
+        if lit.max() - lit.min() < c.contrast.min_contrast:
             raise InputError("blank image: no ink found (uniform grey levels)")
-        grey = grey.astype(np.float32)
+        grey = lit.astype(np.float32)
     threshold = c.threshold
     paper, grain = paper_statistics(grey)
     smoothing, band_grey, band_paper, band_grain = 0.0, grey, paper, grain
@@ -439,37 +496,20 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         raise InputError("blank image: no pixel darker than prep.threshold")
     if ink > c.max_ink_fraction:
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
-    h, w = grey.shape
-    scale, width = 1.0, None
-    if c.supersample.enabled or c.downsample.enabled:
-        width = stroke_width(mask)
-    if c.supersample.enabled:
-        soft = soft_edges(grey, mask)
-        factor, note = supersample_factor(width, soft, (h, w), c.supersample)
-        if note:
-            notes.append(note)
-        if factor > 1:
-            scale = float(factor)
-            grey = supersample(grey, factor, c.supersample.blur)
-            notes.append(f"{_width_words(width, mask)}: working at {factor}x resolution "
-                         "(prep.supersample; the curves are mapped back)")
-    if scale == 1.0 and c.downsample.enabled:
-        k = downsample_factor(width, c.downsample)
-        if k > 1:
-            scale = 1.0 / k
-            grey = downsample(grey, k)
-            notes.append(f"{_width_words(width, mask)}: working at 1/{k} resolution "
-                         "(prep.downsample; the curves are mapped back)")
-    if scale != 1.0:
-        # The band again at the internal resolution; specks are dropped by their area in the drawing.
-        mask = narrow_band(_smoothed(grey, smoothing * scale), threshold, c.repair_passes, c.repair_neighbours,
-                           max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
-        if not mask.any():
-            raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
-    return Artifact(arrays={"grey": grey, "mask": mask},
-                    data={"height": h, "width": w, "scale": scale, "stroke_width": width, "mode": mode,
-                          "ink_fraction": ink, "paper_level": paper, "paper_grain": grain,
-                          "band_threshold": threshold, "band_smoothing": smoothing}, notes=notes)
+    return grey, mask, {"ink_fraction": ink, "paper_level": paper, "paper_grain": grain, "band_threshold": threshold,
+                        "band_smoothing": smoothing}
+
+
+def ink_box(mask: np.ndarray, margin: int, max_area_fraction: float) -> tuple[int, int, int, int] | None:
+    """The band's bounding box grown by ``margin`` px (clipped to the image) as ``(y0, y1, x0, x1)``, or
+    None when it would keep more than ``max_area_fraction`` of the image (nothing worth cropping)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    h, w = mask.shape
+    y0, y1 = max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)
+    x0, x1 = max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)
+    if (y1 - y0) * (x1 - x0) > max_area_fraction * h * w:
+        return None
+    return int(y0), int(y1), int(x0), int(x1)
 
 
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:

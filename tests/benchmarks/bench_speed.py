@@ -16,6 +16,8 @@ Rows:
 - the drawing upscaled 2× and 4× (bicubic), with per-stage seconds and peak MB (the linear-cost curve);
   their strokes are wide enough for ``prep.downsample`` (7.9 and 15.2 px), so they run at 1/2 and 1/4;
   ``--full-resolution`` adds the same rows with ``prep.downsample.enabled=false`` (the stages' own curve);
+- the drawing on an A4 sheet at 300 dpi (2480×3508, grey levels of its own paper around it; the issue's
+  "page scanned at 300 dpi"), and the same with ``prep.crop.enabled=false``;
 - 8 drawings at 512² (the 13 drawings' first 8, fitted into 512×512 on white) with 1 and 2 workers of
   a local cluster (``runtime.cluster=local``), and the speed-up.
 
@@ -72,6 +74,21 @@ def scaled(image: Path, factor: int, folder: Path) -> Path:
     im = Image.open(image)
     path = folder / f"{image.stem}_x{factor}.png"
     im.resize((im.width * factor, im.height * factor), Image.BICUBIC).save(path)
+    return path
+
+
+def on_a4_sheet(image: Path, folder: Path) -> Path:
+    """The drawing pasted on a 2480×3508 sheet (A4 at 300 dpi) of its own paper: grey levels drawn from
+    its pixels lighter than its median (a flat sheet would change the page's contrast statistics)."""
+    import numpy as np
+    from PIL import Image
+
+    grey = np.asarray(Image.open(image).convert("L"))
+    paper = grey[grey >= np.median(grey)]
+    sheet = np.random.default_rng(0).choice(paper, size=(3508, 2480)).astype(np.uint8)
+    sheet[400:400 + grey.shape[0], 300:300 + grey.shape[1]] = grey
+    path = folder / f"{image.stem}_a4.png"
+    Image.fromarray(sheet).save(path)
     return path
 
 
@@ -138,6 +155,10 @@ def main() -> None:
                 if args.full_resolution:
                     row(f"×{factor}, same, prep.downsample.enabled=false",
                         polyvec([str(big)], out, str(tmp / f"fx{factor}"), "prep.downsample.enabled=false", env=env))
+            sheet = str(on_a4_sheet(args.image, tmp))
+            row("on an A4 sheet at 300 dpi (2480×3508), empty store", polyvec([sheet], out, str(tmp / "a4"), env=env))
+            row("same, prep.crop.enabled=false",
+                polyvec([sheet], out, str(tmp / "a4f"), "prep.crop.enabled=false", env=env))
         if not args.skip_batch:
             drawings = sorted(SHARED.glob("*/*.png"))[:8]
             folder = tmp / "batch"

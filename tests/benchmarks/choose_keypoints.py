@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from stages.keypoints import keypoints_from_heatmaps, load_model
     from stages.keypoints import VIEWS
     from stages.keypoints.inference import network_input, predict_heatmaps
-    from stages.prep import internal_scale
+    from stages.prep import to_source
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("cases", type=Path)
@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                                            int(kcfg["tile_overlap"]), detection_only=name not in mains,
                                            single_pass_max=int(kcfg["single_pass_max"])))
                 maps[name if v is None else f"{name}@{v}"] = np.ascontiguousarray(hm).astype(np.float16)
-        # a supersampled or downsampled prep gives internal pixels: keypoints are divided back
-        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, internal_scale(p.data)))
+        # a supersampled, downsampled or cropped prep gives internal pixels: keypoints are mapped back
+        cases.append((png.stem, gt, np.asarray(p["mask"], bool), maps, p.data))
         print(f"\r{len(cases)} drawings", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     rows = []
@@ -89,13 +89,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = dict(kcfg, threshold=thr, typing=typing.split("=")[0],
                    type_classifier=typing.split("=", 1)[1] if "=" in typing else kcfg["type_classifier"])
         pooled = MatchResult()
-        for _, (gpts, gtypes), mask, maps, scale in cases:
+        for _, (gpts, gtypes), mask, maps, prep_data in cases:
             # As the stage: the main network's maps averaged over the views, then its H1 with the others'.
             hm = np.mean([maps[members[0]].astype(np.float32)]
                          + [maps[f"{members[0]}@{v}"].astype(np.float32) for v in view_sets[vset]], axis=0)
             hm[0] = (hm[0] + sum(maps[m][0].astype(np.float32) for m in members[1:])) / len(members)
             _, pts, types, _ = keypoints_from_heatmaps(cfg, hm, mask)
-            pooled = pooled + match_keypoints(gpts, gtypes, pts / scale, types, 5.0)
+            pooled = pooled + match_keypoints(gpts, gtypes, to_source(pts, prep_data), types, 5.0)
         cf = {t: pooled.class_f1(t) for t in TYPES}
         rows.append({"ensemble": ens, "views": vset, "threshold": thr, "typing": typing, "f1": pooled.f1,
                      "precision": pooled.precision, "recall": pooled.recall, "accuracy": pooled.accuracy,

@@ -155,6 +155,29 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
 
 
 @pytest.mark.slow
+def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_the_pages_pixels(tmp_path, cli):
+    """A sketch on a scanned sheet (issue #14): the later stages work on the ink's box (prep.crop), and
+    the curves are where they are on the page, as those of the same drawing alone, moved."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    alone = Image.new("L", (240, 200), 255)
+    d = ImageDraw.Draw(alone)
+    d.ellipse([20, 30, 220, 170], outline=0, width=3)
+    d.line([(60, 100), (180, 110)], fill=0, width=3)
+    page = Image.new("L", (1700, 1200), 255)
+    page.paste(alone, (900, 600))
+    curves, pts = _resampled_run(tmp_path, cli, "sheet.png", page, "working on its 265×205 box at (888, 598)")
+    (tmp_path / "out").rename(tmp_path / "out_page")
+    ref, ref_pts = _resampled_run(tmp_path, cli, "alone.png", alone, "")
+    assert len(curves) == len(ref) == 2
+    from scipy.spatial import cKDTree
+
+    moved = pts - (900, 600)
+    assert cKDTree(ref_pts).query(moved)[0].max() < 0.5 and cKDTree(moved).query(ref_pts)[0].max() < 0.5
+
+
+@pytest.mark.slow
 def test_a_rotated_photo_and_a_multi_page_scan_come_out_as_a_viewer_shows_them(tmp_path, cli):
     """An EXIF orientation (phone photos, scanners' JPEGs) is applied: the SVG has the size and the
     curves the place a viewer shows; of a multi-page TIFF the first page is vectorised, and it says so."""

@@ -216,13 +216,24 @@ def _wide_drawing(path):
     big.resize((1001, 803), Image.LANCZOS).save(path)
 
 
+def _drawing_on_a_sheet(path):
+    """1200 x 1000, a 3-px ellipse in its lower right: prep.crop runs its ink's box (from (568, 368))."""
+    from PIL import Image, ImageDraw
+
+    img = Image.new("L", (1200, 1000), 255)
+    ImageDraw.Draw(img).ellipse([600, 400, 840, 560], outline=0, width=3)
+    img.save(path)
+
+
 @pytest.mark.parametrize("draw, size, scale, on_page, in_drawing, near", [
     # the ellipse's top at (120, 30.5) drawing px is at (240, 61) on the 2x page
     (_thin_drawing, (240, 200), 2.0, (240, 61), (120.0, 30.5), 1.5),
     # the ellipse's top at (500.5, 128) drawing px is at (125.125, 32) on the 1/4 page; the old page
     # divided its own size by the scale and saved edits for a 1004 x 804 drawing
     (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0),
-], ids=["supersampled", "downsampled"])
+    # the ellipse's top at (720, 401) drawing px is at (152, 33) on the page of its ink's box from (568, 368)
+    (_drawing_on_a_sheet, (1200, 1000), 1.0, (152, 33), (720.0, 401.0), 1.5),
+], ids=["supersampled", "downsampled", "cropped"])
 @needs_chromium
 def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path, draw, size, scale, on_page,
                                                                         in_drawing, near):

@@ -103,6 +103,19 @@ def test_edits_in_drawing_pixels_land_on_a_downsampled_prep():
         run(dict(CFG, edits=dict(edits, width=84, height=68)), kp)
 
 
+def test_edits_in_drawing_pixels_land_on_a_cropped_prep():
+    """A drawing on a larger page: prep works on its ink's box from (100, 40) at 2x; edits are in the page's pixels."""
+    kp = _keypoints(h=128, w=160)
+    kp.data.update(scale=2, origin=[100, 40], height=300, width=400)
+    edits = {"format": "polyvec-keypoint-edits", "version": 1, "width": 400, "height": 300,
+             "added": [{"x": 120, "y": 45, "type": "junction"}],
+             "removed": [{"x": 105.9, "y": 45.0}],
+             "retyped": [{"x": 135.0, "y": 65.0, "type": "endpoint"}]}
+    out = run(dict(CFG, edits=edits), kp)
+    np.testing.assert_allclose(out["points"], [[40.2, 30.7], [70.0, 50.0], [40, 10]], atol=1e-5)
+    np.testing.assert_array_equal(out["types"], [3, 1, 3])
+
+
 def test_oracle_edits_swap_the_detected_keypoints_of_a_type_for_the_labels():
     """tests/benchmarks/oracle_keypoints.py: its edits, applied by the stage, leave exactly the labels."""
     from tests.benchmarks.oracle_keypoints import oracle_edits

@@ -175,6 +175,26 @@ def test_sparse_drawing_is_not_blank(size, rows):
     assert art.arrays["grey"].min() == 0.0 and art.arrays["grey"].max() == 1.0
 
 
+def test_a_drawing_on_a_larger_page_is_cropped_to_its_ink_and_says_so():
+    """A sketch on a scanned sheet: the grey and band are cut to the ink's box grown by margin_px, and
+    ``origin`` says where it was; a drawing that fills its image, or crop disabled, keeps the page."""
+    alone = prep.run(CFG, synthetic.tee(size=64).png_bytes())
+    tee = np.asarray(Image.open(io.BytesIO(synthetic.tee(size=64).png_bytes())).convert("L"))
+    page = np.full((600, 500), 255, np.uint8)
+    page[300:364, 100:164] = tee
+    art = prep.run(CFG, _encode(Image.fromarray(page, "L"), "PNG"))
+    rows, cols = np.nonzero(alone.arrays["mask"])
+    m = CFG["crop"]["margin_px"]
+    x0, y0 = 100 + cols.min() - m, 300 + rows.min() - m
+    assert art.data["origin"] == [x0, y0] and (art.data["height"], art.data["width"]) == (600, 500)
+    assert art.arrays["mask"].shape == (rows.max() - rows.min() + 1 + 2 * m, cols.max() - cols.min() + 1 + 2 * m)
+    np.testing.assert_array_equal(np.nonzero(art.arrays["mask"])[0] + y0, rows + 300)
+    assert any("prep.crop" in n for n in art.notes)
+    assert alone.data["origin"] is None and alone.arrays["mask"].shape == (64, 64)
+    off = prep.run(dict(CFG, crop=dict(CFG["crop"], enabled=False)), _encode(Image.fromarray(page, "L"), "PNG"))
+    assert off.data["origin"] is None and off.arrays["mask"].shape == (600, 500)
+
+
 def test_pillow_decompression_limit_names_the_limit_that_applies(monkeypatch):
     """Over Pillow's own pixel limit the message names it, not prep.max_pixels (raising that would not help)."""
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
@@ -375,6 +395,14 @@ def test_a_black_fill_wider_than_the_window_is_ink_not_shade():
     assert variation > 0.2 and out[disc].max() < 0.35      # still ink after the division
 
 
+def _page_mask(art) -> np.ndarray:
+    """A prep's band on the whole drawing (a cropped prep's box put back where ``origin`` says)."""
+    mask = np.zeros((art.data["height"], art.data["width"]), bool)
+    x0, y0 = art.data["origin"] or (0, 0)
+    mask[y0:y0 + art["mask"].shape[0], x0:x0 + art["mask"].shape[1]] = art["mask"]
+    return mask
+
+
 def test_a_shadow_is_divided_out_and_the_strokes_are_found_as_without_it():
     """A pencil drawing under a 40 % shadow (a photographed sketch): without the lighting rule the
     threshold finds no ink, or the shadow; with it, the band is the one of the evenly lit drawing."""
@@ -391,7 +419,7 @@ def test_a_shadow_is_divided_out_and_the_strokes_are_found_as_without_it():
     assert agree > 0.995 and abs(int(shadowed["mask"].sum()) - int(even["mask"].sum())) < 0.1 * even["mask"].sum()
     off = {**CFG, "lighting": {**CFG["lighting"], "enabled": False}}
     try:
-        unflattened = prep.run(off, png)["mask"]
+        unflattened = _page_mask(prep.run(off, png))    # its few dark specks are cropped to (prep.crop)
         assert (unflattened == even["mask"]).mean() < agree                # the rule is what made them agree
     except InputError as exc:                                               # or nothing was found at all
         assert "no ink" in str(exc)
