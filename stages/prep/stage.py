@@ -72,11 +72,13 @@ Choices made on purpose
   image (a sketch on a scanned sheet), the inverted and lighting-flattened grey is cut to it, its
   contrast stretch and band are found again there (on a sheet the page's percentiles are the paper's:
   ink under 0.5 % of the pixels stretched the paper's texture into the band), the resampling follows,
-  and every later stage works on the box: ``origin`` in the data is its corner in the drawing's pixels (internal
-  ``x = scale · (x_source − origin)``), which the export maps back.  Why: the field, graph, topology and
-  network cost grew with the page, not the ink (the elephant on an A4 sheet at 300 dpi: 33 s against
-  8 s for the elephant alone; stages/DECISIONS.md).  A drawing that fills its image is left as it is,
-  so its results do not move; a cropped one is processed as the same drawing cut out by hand.
+  and every later stage works on the box: ``origin`` in the data is its corner in the drawing's
+  pixels (internal ``x = scale · (x_source − origin)``), which the export maps back.  Why: the
+  field, graph, topology and network cost grew with the page, not the ink, and the page's stretch
+  made paper texture band (the elephant on an A4 sheet at 300 dpi: 48.7 s and 269 curves against
+  10.1 s and 100, 97 alone; stages/DECISIONS.md).  A drawing that fills its image, or an elongated
+  one (``max_area_fraction`` 0.25, chosen on the validation splits), is left as it is, so its
+  results do not move; a cropped one is processed as the same drawing cut out by hand.
 """
 
 from __future__ import annotations
@@ -418,16 +420,16 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             notes.append(f"uneven lighting (the paper's brightness varies by {variation:.0%}): divided out "
                          "(prep.lighting)")
         grey = lit
-    lit = grey
-    grey, mask, band_data = _grey_and_band(lit, c)
+    page = grey   # inverted and lighting-flattened: what a crop cuts
+    grey, mask, band_data = _grey_and_band(page, c)
     h, w = grey.shape
     origin = None
-    if c.crop.enabled and (box := ink_box(mask, c.crop.margin_px, c.crop.max_area_fraction)) is not None:
+    if c.crop.enabled and (box := _ink_box(mask, c.crop.margin_px, c.crop.max_area_fraction)) is not None:
         y0, y1, x0, x1 = box
         origin = [int(x0), int(y0)]
         # The box's own contrast stretch and band: on a sheet the page's percentiles are the paper's
         # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
-        grey, mask, band_data = _grey_and_band(lit[y0:y1, x0:x1], c)
+        grey, mask, band_data = _grey_and_band(page[y0:y1, x0:x1], c)
         notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
                      f"{x1 - x0}×{y1 - y0} box at ({x0}, {y0}) (prep.crop; the curves are mapped back)")
     scale, width = 1.0, None
@@ -500,7 +502,7 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
                         "band_smoothing": smoothing}
 
 
-def ink_box(mask: np.ndarray, margin: int, max_area_fraction: float) -> tuple[int, int, int, int] | None:
+def _ink_box(mask: np.ndarray, margin: int, max_area_fraction: float) -> tuple[int, int, int, int] | None:
     """The band's bounding box grown by ``margin`` px (clipped to the image) as ``(y0, y1, x0, x1)``, or
     None when it would keep more than ``max_area_fraction`` of the image (nothing worth cropping)."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
