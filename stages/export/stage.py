@@ -85,7 +85,7 @@ from stages.export.corners import join_at_corners
 from stages.export.gaps import close_gaps
 from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
 from stages.geometry import polyline_length
-from stages.prep import internal_origin, internal_scale, to_source
+from stages.prep import internal_is_source, internal_scale, to_source
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,11 +220,11 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px)
-    scale = internal_scale(prep.data)
-    if scale != 1 or internal_origin(prep.data).any():
+    if not internal_is_source(prep.data):
         # prep supersampled thin or downsampled wide strokes, or cropped the drawing out of its page:
         # every stage so far worked at internal x = scale · (source x − origin), the pixel corners
         # aligned; the SVG is the source's.
+        scale = internal_scale(prep.data)
         curves = [dict(c, points=to_source(c["points"], prep.data),
                        width=None if c.get("width") is None else float(c["width"]) / scale) for c in curves]
     # A curve shorter than a pixel draws nothing an artist can edit (a selected path that flowed onto

@@ -29,7 +29,7 @@ import numpy as np
 
 from stages.artifact import Artifact
 from stages.errors import InputError
-from stages.prep import internal_origin, internal_scale, to_internal
+from stages.prep import internal_is_source, internal_scale, to_internal
 
 FORMAT = "polyvec-keypoint-edits"
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
@@ -213,7 +213,7 @@ def run(cfg: dict, keypoints: Artifact) -> Artifact:
             if (edits["width"], edits["height"]) != (None, None) and (edits["width"], edits["height"]) != (w, h):
                 raise InputError(f"the edits are for a {edits['width']}×{edits['height']} drawing, "
                                  f"this one is {w}×{h}")
-        if scale != 1 or internal_origin(keypoints.data).any():
+        if not internal_is_source(keypoints.data):
             edits = dict(edits, **{op: [tuple(map(float, to_internal((x, y), keypoints.data)[0])) + tuple(rest)
                                         for x, y, *rest in edits[op]] for op in ("added", "removed", "retyped")})
         points, types, scores, log = apply_edits(points, types, scores, edits, float(cfg["match_radius"]) * scale)

@@ -130,6 +130,12 @@ def internal_origin(data: dict) -> np.ndarray:
     return np.asarray(data.get("origin") or (0, 0), np.float64)
 
 
+def internal_is_source(data: dict) -> bool:
+    """Whether the internal pixels are the drawing's (no resampling, no crop): the mappings below are
+    the identity, and callers that keep their values as they are may skip them."""
+    return internal_scale(data) == 1 and not internal_origin(data).any()
+
+
 def to_source(points, data: dict) -> np.ndarray:
     """(N, 2) internal (x, y) → the drawing's pixels: ``internal / scale + origin``."""
     return np.asarray(points, np.float64).reshape(-1, 2) / internal_scale(data) + internal_origin(data)

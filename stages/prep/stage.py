@@ -426,7 +426,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     origin = None
     if c.crop.enabled and (box := _ink_box(mask, c.crop.margin_px, c.crop.max_area_fraction)) is not None:
         y0, y1, x0, x1 = box
-        origin = [int(x0), int(y0)]
+        origin = [x0, y0]
         # The box's own contrast stretch and band: on a sheet the page's percentiles are the paper's
         # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
         grey, mask, band_data = _grey_and_band(page[y0:y1, x0:x1], c)
