@@ -14,13 +14,14 @@ import numpy as np
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "10"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "11"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
 #                        lighting is divided out (prep.lighting); 9: light strokes on dark paper are
 #                        inverted (prep.invert), white line art on a transparent page read over black;
-#                     10: a drawing on a much larger page is cropped to its ink (prep.crop)
+#                     10: a drawing on a much larger page is cropped to its ink (prep.crop); 11: small
+#                        marks far from the drawing (dust on a scanned sheet) do not widen the crop
 
 
 @dataclass
@@ -86,10 +87,15 @@ class CropConfig:
     enabled: bool
     margin_px: int
     max_area_fraction: float
+    cluster_gap_px: int
+    min_cluster_share: float
+    max_speck_px: int
 
     def __post_init__(self) -> None:
         if self.margin_px < 0 or not 0 < self.max_area_fraction <= 1:
             raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
+        if self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0:
+            raise InputError("prep.crop: need cluster_gap_px ≥ 1, 0 ≤ min_cluster_share ≤ 1 and max_speck_px ≥ 0")
 
 
 @dataclass

@@ -433,3 +433,63 @@ def test_strokes_below_the_downsampling_width_keep_the_resolution():
     c = from_section(prep.DownsampleConfig, CFG["downsample"], "prep.downsample")
     # k = floor(width / target_width), from above_width on, at most max_factor
     assert [prep.downsample_factor(w, c) for w in (6.9, 7.0, 10.4, 10.5, 15.0, 100.0)] == [1, 2, 2, 3, 4, 4]
+
+
+def _sheet_with_drawing(size=(1400, 1000), at=(300, 200), level=0, grain=0.0, seed=0):
+    """A white sheet (with paper grain of ``grain`` grey levels) and a 240×240 drawing of grey ``level``
+    (a square and a circle, 3 px strokes: ~4,000 ink pixels) whose corner is at ``at`` (x, y)."""
+    rng = np.random.default_rng(seed)
+    page = np.clip(rng.normal(250 if grain else 255, grain, size[::-1]), 0, 255) if grain else np.full(size[::-1], 255.0)
+    img = Image.fromarray(page.astype(np.uint8), "L")
+    d = ImageDraw.Draw(img)
+    x, y = at
+    d.rectangle([x + 20, y + 20, x + 220, y + 160], outline=level, width=3)
+    d.ellipse([x + 60, y + 100, x + 200, y + 230], outline=level, width=3)
+    return img
+
+
+def test_dust_far_from_the_drawing_does_not_keep_the_whole_sheet():
+    """Scanner dust on a sheet: specks no larger than ``crop.max_speck_px`` and clusters with under
+    ``crop.min_cluster_share`` of the drawing's ink do not widen the crop's box, and the note counts
+    them; with both rules off (stop 43's box) the specks spread the box over the sheet and nothing is
+    cropped."""
+    clean = prep.run(CFG, _encode(_sheet_with_drawing(), "PNG"))
+    dusty = _sheet_with_drawing()
+    d = ImageDraw.Draw(dusty)
+    for cx, cy in [(50, 60), (1300, 80), (1250, 900), (80, 950)]:
+        d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=0)   # 11-px specks
+    d.line([(1000, 700), (1030, 722)], fill=0, width=1)          # a 37-px hair: ~1 % of the drawing's ink
+    art = prep.run(CFG, _encode(dusty, "PNG"))
+    assert clean.data["origin"] is not None and art.data["origin"] == clean.data["origin"]
+    np.testing.assert_array_equal(art.arrays["mask"], clean.arrays["mask"])
+    assert any("5 small marks far from it left out" in n for n in art.notes), art.notes
+    old = dict(CFG, crop=dict(CFG["crop"], max_speck_px=0, min_cluster_share=0.0))
+    assert prep.run(old, _encode(dusty, "PNG")).data["origin"] is None
+
+
+def test_a_stroke_far_from_the_drawing_is_kept_in_the_box():
+    """A short stroke of the drawing far from the rest (a stray line of the popsicle in the validation
+    split, 8 % of its ink) is not dust: the box reaches it."""
+    img = _sheet_with_drawing(size=(2000, 1600))
+    ImageDraw.Draw(img).line([(900, 800), (960, 830)], fill=0, width=3)
+    art = prep.run(CFG, _encode(img, "PNG"))
+    x0, y0 = art.data["origin"]
+    h, w = art.arrays["mask"].shape
+    assert x0 + w >= 960 + CFG["crop"]["margin_px"] and y0 + h >= 830 + CFG["crop"]["margin_px"]
+    assert not any("left out" in n for n in art.notes)
+
+
+def test_faint_pencil_on_a_grainy_sheet_is_found_and_cropped():
+    """Faint pencil (grey 200) on a large grainy sheet with a few black noise pixels: the page's
+    percentiles are all paper, and its darkest pixel is noise, so the page-wide stretch found no ink
+    ("blank image", as validation drawings on 2×–3× sheets did). The box is found on the unstretched
+    grey, and the band inside it is the drawing's."""
+    img = _sheet_with_drawing(level=200, grain=3.0)
+    px = np.asarray(img).copy()
+    rng = np.random.default_rng(1)
+    px[rng.integers(0, 1000, 30), rng.integers(0, 1400, 30)] = 0
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    assert art.data["origin"] is not None
+    full = _page_mask(art)
+    ref = np.asarray(_sheet_with_drawing()) < 128
+    assert (full & ref).sum() >= 0.9 * ref.sum() and (full & ~ref).sum() <= 0.2 * ref.sum()
