@@ -493,3 +493,26 @@ def test_faint_pencil_on_a_grainy_sheet_is_found_and_cropped():
     full = _page_mask(art)
     ref = np.asarray(_sheet_with_drawing()) < 128
     assert (full & ref).sum() >= 0.9 * ref.sum() and (full & ~ref).sum() <= 0.2 * ref.sum()
+
+
+def test_faint_sparse_pencil_on_a_sheet_too_small_to_crop_is_not_blank():
+    """A faint pencil circle (grey 200, 2 px) on a grainy sheet with a few black noise pixels, its box
+    over ``crop.max_area_fraction`` (not cropped) and its ink under the 0.5 % of the page's low
+    percentile: the page-wide stretch falls back to the ink's own levels, and black is not the darkest
+    noise pixel (which left every stroke lighter than the threshold: "blank image", as a validation
+    drawing on a sheet twice its size did)."""
+    def sheet(level, grain):
+        rng = np.random.default_rng(0)
+        page = np.clip(rng.normal(250, grain, (800, 800)), 0, 255) if grain else np.full((800, 800), 255.0)
+        img = Image.fromarray(page.astype(np.uint8), "L")
+        ImageDraw.Draw(img).ellipse([200, 200, 600, 600], outline=level, width=2)
+        return np.asarray(img).copy()
+
+    px = sheet(200, 3.0)
+    rng = np.random.default_rng(1)
+    px[rng.integers(0, 800, 10), rng.integers(0, 800, 10)] = 0
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    assert art.data["origin"] is None
+    ref = sheet(0, 0.0) < 128
+    mask = art.arrays["mask"]
+    assert (mask & ref).sum() >= 0.9 * ref.sum() and (mask & ~ref).sum() <= 0.1 * ref.sum()
