@@ -156,8 +156,9 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
 
 @pytest.mark.slow
 def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_the_pages_pixels(tmp_path, cli):
-    """A sketch on a scanned sheet (issue #14): the later stages work on the ink's box (prep.crop), and
-    the curves are where they are on the page, as those of the same drawing alone, moved."""
+    """A sketch on a scanned sheet with three specks of dust far from it (issue #14): the later stages
+    work on the ink's box (prep.crop; the specks left out, and said), and the curves are where they are
+    on the page, as those of the same drawing alone, moved."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -167,7 +168,10 @@ def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_th
     d.line([(60, 100), (180, 110)], fill=0, width=3)
     page = Image.new("L", (1700, 1200), 255)
     page.paste(alone, (900, 600))
-    curves, pts = _resampled_run(tmp_path, cli, "sheet.png", page, "working on its 265×205 box at (888, 598)")
+    for cx, cy in [(100, 100), (1600, 150), (300, 1100)]:
+        ImageDraw.Draw(page).ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=0)
+    curves, pts = _resampled_run(tmp_path, cli, "sheet.png", page,
+                                 "working on its 265×205 box at (888, 598), 3 small marks far from it left out")
     (tmp_path / "out").rename(tmp_path / "out_page")
     ref, ref_pts = _resampled_run(tmp_path, cli, "alone.png", alone, "")
     assert len(curves) == len(ref) == 2
