@@ -21,7 +21,8 @@ STAGE_VERSION = "11"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        lighting is divided out (prep.lighting); 9: light strokes on dark paper are
 #                        inverted (prep.invert), white line art on a transparent page read over black;
 #                     10: a drawing on a much larger page is cropped to its ink (prep.crop); 11: small
-#                        marks far from the drawing (dust on a scanned sheet) do not widen the crop
+#                        marks far from the drawing (dust on a scanned sheet) and the page's dark edge do
+#                        not widen the crop
 
 
 @dataclass
@@ -90,12 +91,15 @@ class CropConfig:
     cluster_gap_px: int
     min_cluster_share: float
     max_speck_px: int
+    page_edge_fraction: float
 
     def __post_init__(self) -> None:
         if self.margin_px < 0 or not 0 < self.max_area_fraction <= 1:
             raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
-        if self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0:
-            raise InputError("prep.crop: need cluster_gap_px ≥ 1, 0 ≤ min_cluster_share ≤ 1 and max_speck_px ≥ 0")
+        if (self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0
+                or not 0 < self.page_edge_fraction <= 1):
+            raise InputError("prep.crop: need cluster_gap_px ≥ 1, 0 ≤ min_cluster_share ≤ 1, max_speck_px ≥ 0 and "
+                             "0 < page_edge_fraction ≤ 1")
 
 
 @dataclass

@@ -81,8 +81,8 @@ Choices made on purpose
   results do not move; a cropped one is processed as the same drawing cut out by hand.  The box is
   found on the unstretched grey (ink ``min_contrast`` and the grain's deviations below the paper: the
   page's stretch made faint pencil on a sheet "blank"), and dust does not widen it: marks no larger
-  than ``max_speck_px`` and clusters with under ``min_cluster_share`` of the largest one's ink are left
-  out, with a note (six specks kept the elephant's A4 sheet whole: 50 s and 280 curves; 0.02 is the
+  than ``max_speck_px``, clusters with under ``min_cluster_share`` of the largest one's ink and the
+  page's dark edge (ink along ``page_edge_fraction`` of a side) are left out, with a note (six specks kept the elephant's A4 sheet whole: 50 s and 280 curves; 0.02 is the
   geometric middle between the validation splits' smallest far stroke, 0.076, and grain, 0.005).
 """
 
@@ -435,13 +435,14 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     h, w = grey.shape
     origin = None
     if c.crop.enabled and (found := _ink_box(grey, c)) is not None:
-        (y0, y1, x0, x1), left_out = found
+        (y0, y1, x0, x1), left_out, edge = found
         origin = [x0, y0]
         # The box's own contrast stretch and band: on a sheet the page's percentiles are the paper's
         # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
         grey, mask, band_data = _grey_and_band(grey[y0:y1, x0:x1], c)
-        marks = (f", {left_out} small mark{'s' if left_out > 1 else ''} far from it left out" if left_out
-                 else "")
+        what = [f"{left_out} small mark{'s' if left_out > 1 else ''} far from it"] if left_out else []
+        what += ["the page's dark edge"] if edge else []
+        marks = f", {' and '.join(what)} left out" if what else ""
         notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
                      f"{x1 - x0}×{y1 - y0} box at ({x0}, {y0}){marks} (prep.crop; the curves are mapped back)")
     else:
@@ -516,15 +517,17 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
                         "band_smoothing": smoothing}
 
 
-def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int], int] | None:
+def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int], int, bool] | None:
     """The box a drawing on a larger page is cut to, as ``(y0, y1, x0, x1)`` with the count of small
-    marks left out of it, or None when it would keep more than ``crop.max_area_fraction`` of the image.
+    marks left out of it and whether the page's edge was, or None when it would keep more than
+    ``crop.max_area_fraction`` of the image.
 
     The ink here is what stands clear of the paper in the inverted, lighting-flattened ``lit``, before
     any stretch: ``min_contrast`` and ``paper_grain_sigmas`` grain deviations below the paper level (the
     page's percentiles are the paper's on a sheet, and its stretched band was noise or nothing).  Its
     components smaller than ``min_component_px`` are dropped; components no wider or taller than
-    ``crop.max_speck_px`` (dust) and clusters of ink (pieces about ``crop.cluster_gap_px`` apart at most,
+    ``crop.max_speck_px`` (dust), components running along a side of the image for at least
+    ``crop.page_edge_fraction`` of it (the page's dark edge in a scan) and clusters of ink (pieces about ``crop.cluster_gap_px`` apart at most,
     on a grid of 16-px cells) holding less than ``crop.min_cluster_share`` of the largest one's ink do
     not widen the box.  The box bounds the rest, grown by ``crop.margin_px`` and clipped to the image.
     Linear in the page.
@@ -538,12 +541,18 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     marks = np.bincount(labels.ravel(), minlength=n + 1)[1:] >= c.min_component_px
     spans = np.array([max(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
                       for sl in ndimage.find_objects(labels)])
-    strokes = marks & (spans > crop.max_speck_px)
+    # The page's own edge (a scanner's lid, the desk beyond the sheet) runs along a side of the image;
+    # a drawing's strokes leave it at a few points.
+    h, w = labels.shape
+    along = np.zeros(n + 1)
+    for line, length in ((labels[0], w), (labels[-1], w), (labels[:, 0], h), (labels[:, -1], h)):
+        along = np.maximum(along, np.bincount(line, minlength=n + 1) / length)
+    edges = along[1:] >= crop.page_edge_fraction
+    strokes = marks & (spans > crop.max_speck_px) & ~edges
     if not strokes.any():
         return None
     ink = np.concatenate([[False], strokes])[labels]
     cell = 16
-    h, w = ink.shape
     hc, wc = -(-h // cell), -(-w // cell)
     padded = np.zeros((hc * cell, wc * cell), dtype=bool)
     padded[:h, :w] = ink
@@ -563,11 +572,12 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     x0, x1 = max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)
     if (y1 - y0) * (x1 - x0) > crop.max_area_fraction * h * w:
         return None
-    # What is left out: the specks and the small clusters outside the box.
+    # What is left out: the specks, the small clusters and the page's edge outside the box.
     outside = np.concatenate([[False], marks])[labels]
     outside[y0:y1, x0:x1] = False
-    left_out = np.unique(labels[outside]).size
-    return (int(y0), int(y1), int(x0), int(x1)), int(left_out)
+    left_out = np.unique(labels[outside])
+    return (int(y0), int(y1), int(x0), int(x1)), int(left_out.size - np.count_nonzero(edges[left_out - 1])), \
+        bool(edges[left_out - 1].any())
 
 
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:

@@ -467,6 +467,20 @@ def test_dust_far_from_the_drawing_does_not_keep_the_whole_sheet():
     assert prep.run(old, _encode(dusty, "PNG")).data["origin"] is None
 
 
+def test_the_dark_edge_of_a_scanned_page_does_not_keep_the_whole_sheet():
+    """A scan's dark page edge (a 14-px strip along 80 % of the left side, darkest at the border) runs
+    along ``crop.page_edge_fraction`` of a side or more: it is left out of the box like dust, and said."""
+    clean = prep.run(CFG, _encode(_sheet_with_drawing(), "PNG"))
+    px = np.asarray(_sheet_with_drawing()).copy()
+    px[100:900, :14] = np.linspace(40, 200, 14).astype(np.uint8)[None, :]
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    assert clean.data["origin"] is not None and art.data["origin"] == clean.data["origin"]
+    np.testing.assert_array_equal(art.arrays["mask"], clean.arrays["mask"])
+    assert any("the page's dark edge left out" in n for n in art.notes), art.notes
+    kept = dict(CFG, crop=dict(CFG["crop"], page_edge_fraction=0.9))
+    assert prep.run(kept, _encode(Image.fromarray(px, "L"), "PNG")).data["origin"] is None
+
+
 def test_a_stroke_far_from_the_drawing_is_kept_in_the_box():
     """A short stroke of the drawing far from the rest (a stray line of the popsicle in the validation
     split, 8 % of its ink) is not dust: the box reaches it."""
