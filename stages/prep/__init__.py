@@ -106,6 +106,7 @@ class CropConfig:
 class PrepConfig:
     """The ``prep`` config section (``conf/prep/default.yaml``), one field per key."""
 
+    max_page_pixels: int
     max_pixels: int
     threshold: float
     repair_passes: int

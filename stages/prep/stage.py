@@ -84,6 +84,9 @@ Choices made on purpose
   than ``max_speck_px``, clusters with under ``min_cluster_share`` of the largest one's ink and the
   page's dark edge (ink along ``page_edge_fraction`` of a side) are left out, with a note (six specks kept the elephant's A4 sheet whole: 50 s and 280 curves; 0.02 is the
   geometric middle between the validation splits' smallest far stroke, 0.076, and grain, 0.005).
+* **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
+  (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
+  A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
 """
 
 from __future__ import annotations
@@ -147,7 +150,7 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
             img = Image.open(io.BytesIO(image_bytes))
             w, h = img.size
             if w * h > max_pixels:
-                raise InputError(f"image too large: {w}x{h} = {w * h} pixels > prep.max_pixels={max_pixels}")
+                raise InputError(f"image too large: {w}x{h} = {w * h} pixels > prep.max_page_pixels={max_pixels}")
             if w == 0 or h == 0:
                 raise InputError("image has no pixels")
             img.load()
@@ -159,7 +162,7 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
         # Pillow's own limit (Image.MAX_IMAGE_PIXELS, ≈ 89.5 Mpx) fires in Image.open, before our
         # max_pixels check: name the limit that applied, since raising max_pixels does not lift it.
         raise InputError(f"image too large for the decoder (Pillow's decompression-bomb limit of "
-                         f"{Image.MAX_IMAGE_PIXELS} pixels, whatever prep.max_pixels says)") from None
+                         f"{Image.MAX_IMAGE_PIXELS} pixels, whatever prep.max_page_pixels says)") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"corrupt or truncated image ({exc})") from None
     mode = img.mode
@@ -418,7 +421,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         ``grey`` float32 (H, W) and ``mask`` bool (H, W); see stages/INTERFACES.md.
     """
     c = from_section(PrepConfig, cfg, "prep")
-    grey, mode, decode_notes = decode_image(image_bytes, c.max_pixels)
+    grey, mode, decode_notes = decode_image(image_bytes, c.max_page_pixels)
     notes: list[str] = list(decode_notes)
     if c.invert != "never":
         level = paper_statistics(grey)[0]
@@ -467,6 +470,10 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             grey = downsample(grey, k)
             notes.append(f"{_width_words(width, mask)}: working at 1/{k} resolution "
                          "(prep.downsample; the curves are mapped back)")
+    if grey.size > c.max_pixels:
+        raise InputError(f"drawing too large to work on: {grey.shape[1]}x{grey.shape[0]} = {grey.size} pixels "
+                         f"after the crop and resampling > prep.max_pixels={c.max_pixels} (crop the image, or "
+                         "scan at a lower resolution)")
     if scale != 1.0:
         # The band again at the internal resolution; specks are dropped by their area in the drawing.
         mask = narrow_band(_smoothed(grey, band_data["band_smoothing"] * scale), band_data["band_threshold"],

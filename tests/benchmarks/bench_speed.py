@@ -17,8 +17,8 @@ Rows:
   their strokes are wide enough for ``prep.downsample`` (7.9 and 15.2 px), so they run at 1/2 and 1/4;
   ``--full-resolution`` adds the same rows with ``prep.downsample.enabled=false`` (the stages' own curve);
 - the drawing on an A4 sheet at 300 dpi (2480×3508, grey levels of its own paper around it; the issue's
-  "page scanned at 300 dpi"), the same with ``prep.crop.enabled=false``, and the sheet with six specks of
-  dust far from the drawing;
+  "page scanned at 300 dpi"), the same with ``prep.crop.enabled=false``, the sheet with six specks of
+  dust far from the drawing, and the drawing 2× on the sheet at 600 dpi (4961×7016);
 - 8 drawings at 512² (the 13 drawings' first 8, fitted into 512×512 on white) with 1 and 2 workers of
   a local cluster (``runtime.cluster=local``), and the speed-up.
 
@@ -78,23 +78,28 @@ def scaled(image: Path, factor: int, folder: Path) -> Path:
     return path
 
 
-def on_a4_sheet(image: Path, folder: Path, dust: bool = False) -> Path:
+def on_a4_sheet(image: Path, folder: Path, dust: bool = False, dpi: int = 300) -> Path:
     """The drawing pasted on a 2480×3508 sheet (A4 at 300 dpi) of its own paper: grey levels drawn from
     its pixels lighter than its median (a flat sheet would change the page's contrast statistics); with
-    ``dust``, six dark specks 5–13 px across far from it (scanner dust)."""
+    ``dust``, six dark specks 5–13 px across far from it (scanner dust); at ``dpi`` 600 the drawing
+    upscaled 2× (bicubic) on a 4961×7016 sheet."""
     import numpy as np
     from PIL import Image
 
-    grey = np.asarray(Image.open(image).convert("L"))
+    im = Image.open(image).convert("L")
+    if dpi == 600:
+        im = im.resize((im.width * 2, im.height * 2), Image.BICUBIC)
+    grey = np.asarray(im)
     paper = grey[grey >= np.median(grey)]
-    sheet = np.random.default_rng(0).choice(paper, size=(3508, 2480)).astype(np.uint8)
-    sheet[400:400 + grey.shape[0], 300:300 + grey.shape[1]] = grey
+    shape, at = ((3508, 2480), (400, 300)) if dpi == 300 else ((7016, 4961), (800, 600))
+    sheet = np.random.default_rng(0).choice(paper, size=shape).astype(np.uint8)
+    sheet[at[0]:at[0] + grey.shape[0], at[1]:at[1] + grey.shape[1]] = grey
     if dust:
         yy, xx = np.ogrid[:3508, :2480]
         for cx, cy, r in [(120, 3300, 4), (2300, 200, 3), (2200, 3100, 5), (1500, 2600, 2.5), (150, 150, 3),
                           (2000, 1800, 6)]:
             sheet[(xx - cx) ** 2 + (yy - cy) ** 2 <= r * r] = 60
-    path = folder / f"{image.stem}_a4{'_dust' if dust else ''}.png"
+    path = folder / f"{image.stem}_a4{'_dust' if dust else ''}{'_600' if dpi == 600 else ''}.png"
     Image.fromarray(sheet).save(path)
     return path
 
@@ -168,6 +173,8 @@ def main() -> None:
                 polyvec([sheet], out, str(tmp / "a4f"), "prep.crop.enabled=false", env=env))
             dusty = str(on_a4_sheet(args.image, tmp, dust=True))
             row("same sheet with 6 specks of dust far from it", polyvec([dusty], out, str(tmp / "a4d"), env=env))
+            fine = str(on_a4_sheet(args.image, tmp, dpi=600))
+            row("the drawing 2× on an A4 sheet at 600 dpi (4961×7016)", polyvec([fine], out, str(tmp / "a4x"), env=env))
         if not args.skip_batch:
             drawings = sorted(SHARED.glob("*/*.png"))[:8]
             folder = tmp / "batch"

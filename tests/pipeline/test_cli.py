@@ -97,15 +97,15 @@ def test_sparse_drawing_runs_through_prep(tmp_path, cli):
     assert "blank" not in proc.stderr
 
 
-def _resampled_run(tmp_path, cli, name: str, img, note: str):
-    """Run the CLI on ``img`` saved as ``name``: its exported curves (drawing pixels) after checking
-    the console note and that the SVG's viewBox is the drawing's size."""
+def _resampled_run(tmp_path, cli, name: str, img, note: str, *overrides: str):
+    """Run the CLI on ``img`` saved as ``name`` (with ``overrides``): its exported curves (drawing
+    pixels) after checking the console note and that the SVG's viewBox is the drawing's size."""
     import json
 
     import numpy as np
 
     img.save(tmp_path / name)
-    proc = cli(name, "runtime.cluster=sync", cwd=tmp_path)
+    proc = cli(name, "runtime.cluster=sync", *overrides, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert note in proc.stderr
     stem = name.rsplit(".", 1)[0]
@@ -158,7 +158,8 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
 def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_the_pages_pixels(tmp_path, cli):
     """A sketch on a scanned sheet with three specks of dust far from it (issue #14): the later stages
     work on the ink's box (prep.crop; the specks left out, and said), and the curves are where they are
-    on the page, as those of the same drawing alone, moved."""
+    on the page, as those of the same drawing alone, moved. The page is over ``prep.max_pixels`` (set
+    low here, as a 600-dpi sheet is over the default): that bounds the box, not the page."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -171,7 +172,8 @@ def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_th
     for cx, cy in [(100, 100), (1600, 150), (300, 1100)]:
         ImageDraw.Draw(page).ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=0)
     curves, pts = _resampled_run(tmp_path, cli, "sheet.png", page,
-                                 "working on its 265×205 box at (888, 598), 3 small marks far from it left out")
+                                 "working on its 265×205 box at (888, 598), 3 small marks far from it left out",
+                                 "prep.max_pixels=1000000")
     (tmp_path / "out").rename(tmp_path / "out_page")
     ref, ref_pts = _resampled_run(tmp_path, cli, "alone.png", alone, "")
     assert len(curves) == len(ref) == 2

@@ -155,8 +155,20 @@ def test_light_strokes_on_dark_paper_are_inverted_and_said(drawing):
 
 def test_huge_image_is_refused_before_decoding():
     data = _encode(Image.fromarray(np.full((400, 500), 255, np.uint8), "L"), "PNG")
-    with pytest.raises(InputError, match="too large"):
-        prep.run(dict(CFG, max_pixels=100_000), data)
+    with pytest.raises(InputError, match="too large.*prep.max_page_pixels"):
+        prep.run(dict(CFG, max_page_pixels=100_000), data)
+
+
+def test_a_page_over_max_pixels_is_worked_on_when_its_drawing_fits_after_the_crop():
+    """``max_pixels`` bounds what the later stages work on, after the crop and resampling (a sketch
+    on an A4 sheet scanned at 600 dpi is 35 Mpx, its box a few); ``max_page_pixels`` bounds decoding.
+    A drawing that fills a page too large for ``max_pixels`` is refused in one line naming it."""
+    sheet = _encode(_sheet_with_drawing(), "PNG")                       # 1400×1000, a 240-px drawing
+    art = prep.run(dict(CFG, max_pixels=200_000), sheet)
+    assert art.data["origin"] is not None and art.arrays["grey"].size <= 200_000
+    full = _encode(_sheet_with_drawing(size=(300, 280), at=(20, 20)), "PNG")   # fills its page
+    with pytest.raises(InputError, match=r"too large to work on: 300x280 = 84000 pixels .*prep.max_pixels=50000"):
+        prep.run(dict(CFG, max_pixels=50_000), full)
 
 
 def _sparse_page(size: int, rows: list[int]) -> bytes:
@@ -200,7 +212,7 @@ def test_pillow_decompression_limit_names_the_limit_that_applies(monkeypatch):
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
     data = _encode(Image.fromarray(np.full((100, 100), 255, np.uint8), "L"), "PNG")  # 10000 > 2 × 1000
     with pytest.raises(InputError, match="Pillow's decompression-bomb limit of 1000 pixels") as info:
-        prep.run(dict(CFG, max_pixels=10**9), data)
+        prep.run(dict(CFG, max_page_pixels=10**9), data)
     assert "\n" not in str(info.value)
 
 
