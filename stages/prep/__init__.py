@@ -98,8 +98,8 @@ class CropConfig:
             raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
         if (self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0
                 or not 0 < self.page_edge_fraction <= 1):
-            raise InputError("prep.crop: need cluster_gap_px ≥ 1, 0 ≤ min_cluster_share ≤ 1, max_speck_px ≥ 0 and "
-                             "0 < page_edge_fraction ≤ 1")
+            raise InputError("prep.crop: need cluster_gap_px ≥ 1, 0 ≤ min_cluster_share ≤ 1, max_speck_px ≥ 0 "
+                             "and 0 < page_edge_fraction ≤ 1")
 
 
 @dataclass

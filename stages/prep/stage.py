@@ -82,8 +82,9 @@ Choices made on purpose
   found on the unstretched grey (ink ``min_contrast`` and the grain's deviations below the paper: the
   page's stretch made faint pencil on a sheet "blank"), and dust does not widen it: marks no larger
   than ``max_speck_px``, clusters with under ``min_cluster_share`` of the largest one's ink and the
-  page's dark edge (ink along ``page_edge_fraction`` of a side) are left out, with a note (six specks kept the elephant's A4 sheet whole: 50 s and 280 curves; 0.02 is the
-  geometric middle between the validation splits' smallest far stroke, 0.076, and grain, 0.005).
+  page's dark edge (ink along ``page_edge_fraction`` of a side) are left out, with a note (six specks
+  kept the elephant's A4 sheet whole: 50 s and 280 curves; 0.02 is the geometric middle between the
+  validation splits' smallest far stroke, 0.076, and grain, 0.005).
 * **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
   (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
   A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
@@ -534,10 +535,10 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     page's percentiles are the paper's on a sheet, and its stretched band was noise or nothing).  Its
     components smaller than ``min_component_px`` are dropped; components no wider or taller than
     ``crop.max_speck_px`` (dust), components running along a side of the image for at least
-    ``crop.page_edge_fraction`` of it (the page's dark edge in a scan) and clusters of ink (pieces about ``crop.cluster_gap_px`` apart at most,
-    on a grid of 16-px cells) holding less than ``crop.min_cluster_share`` of the largest one's ink do
-    not widen the box.  The box bounds the rest, grown by ``crop.margin_px`` and clipped to the image.
-    Linear in the page.
+    ``crop.page_edge_fraction`` of it (the page's dark edge in a scan) and clusters of ink (pieces
+    about ``crop.cluster_gap_px`` apart at most, on a grid of 16-px cells) holding less than
+    ``crop.min_cluster_share`` of the largest one's ink do not widen the box.  The box bounds the rest,
+    grown by ``crop.margin_px`` and clipped to the image.  Linear in the page.
     """
     crop = c.crop
     paper, grain = paper_statistics(lit)
@@ -583,8 +584,8 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     outside = np.concatenate([[False], marks])[labels]
     outside[y0:y1, x0:x1] = False
     left_out = np.unique(labels[outside])
-    return (int(y0), int(y1), int(x0), int(x1)), int(left_out.size - np.count_nonzero(edges[left_out - 1])), \
-        bool(edges[left_out - 1].any())
+    edge_out = edges[left_out - 1]
+    return (int(y0), int(y1), int(x0), int(x1)), int(np.count_nonzero(~edge_out)), bool(edge_out.any())
 
 
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
