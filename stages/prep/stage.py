@@ -483,8 +483,8 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         if not mask.any():
             raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
     return Artifact(arrays={"grey": grey, "mask": mask},
-                    data={"height": h, "width": w, "scale": scale, "origin": origin, "stroke_width": width, "mode": mode,
-                          **band_data}, notes=notes)
+                    data={"height": h, "width": w, "scale": scale, "origin": origin, "stroke_width": width,
+                          "mode": mode, **band_data}, notes=notes)
 
 
 def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -547,8 +547,9 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     if n == 0:
         return None
     marks = np.bincount(labels.ravel(), minlength=n + 1)[1:] >= c.min_component_px
-    spans = np.array([max(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
-                      for sl in ndimage.find_objects(labels)])
+    # Each component's bounding box, (y0, y1, x0, x1): its span, and later whether it reaches past the box.
+    bounds = np.array([(sl[0].start, sl[0].stop, sl[1].start, sl[1].stop) for sl in ndimage.find_objects(labels)])
+    spans = np.maximum(bounds[:, 1] - bounds[:, 0], bounds[:, 3] - bounds[:, 2])
     # The page's own edge (a scanner's lid, the desk beyond the sheet) runs along a side of the image;
     # a drawing's strokes leave it at a few points.
     h, w = labels.shape
@@ -559,11 +560,10 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     strokes = marks & (spans > crop.max_speck_px) & ~edges
     if not strokes.any():
         return None
-    ink = np.concatenate([[False], strokes])[labels]
     cell = 16
     hc, wc = -(-h // cell), -(-w // cell)
     padded = np.zeros((hc * cell, wc * cell), dtype=bool)
-    padded[:h, :w] = ink
+    padded[:h, :w] = np.concatenate([[False], strokes])[labels]
     counts = padded.reshape(hc, cell, wc, cell).sum(axis=(1, 3))
     # Dilating every occupied cell by `reach` joins cells up to 2·reach + 1 cells apart: about the gap.
     reach = max(0, int(round(crop.cluster_gap_px / (2 * cell))))
@@ -580,12 +580,9 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[tuple[int, int, int, int],
     x0, x1 = max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)
     if (y1 - y0) * (x1 - x0) > crop.max_area_fraction * h * w:
         return None
-    # What is left out: the specks, the small clusters and the page's edge outside the box.
-    outside = np.concatenate([[False], marks])[labels]
-    outside[y0:y1, x0:x1] = False
-    left_out = np.unique(labels[outside])
-    edge_out = edges[left_out - 1]
-    return (int(y0), int(y1), int(x0), int(x1)), int(np.count_nonzero(~edge_out)), bool(edge_out.any())
+    # What is left out: the specks, small clusters and page edge whose bounding box reaches past the box.
+    beyond = marks & ((bounds[:, 0] < y0) | (bounds[:, 1] > y1) | (bounds[:, 2] < x0) | (bounds[:, 3] > x1))
+    return (int(y0), int(y1), int(x0), int(x1)), int(np.count_nonzero(beyond & ~edges)), bool((beyond & edges).any())
 
 
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
