@@ -190,7 +190,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     dict
         ``width``, ``height`` (of the internal resolution), ``scale`` (internal pixels per drawing
         pixel: prep's supersampling), ``origin_x``, ``origin_y`` (the internal picture's corner in the
-        drawing: prep's crop), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
+        drawing: prep's crop), ``pieces`` (a mosaic's, :func:`~stages.prep.internal_pieces`; [] if none), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
         "on"}`` (SVG markup in image pixel coordinates); ``keypoints``: the editable points
         ``{"x", "y", "orig", "cur"}`` (``orig`` 0 = added, ``cur`` 0 = removed); ``stages``: the side
         panel rows; ``counts``.
@@ -201,7 +201,8 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     mask = np.asarray(prep["mask"], bool)
     h, w = grey.shape
     # A supersampled, downsampled or cropped prep: the page shows the internal picture; exported curves
-    # and saved edits are in the drawing's pixels (internal = scale · (drawing − origin)).
+    # and saved edits are in the drawing's pixels (internal = scale · (drawing − origin); in a mosaic of far-apart
+    # parts, each piece's own offset: the page's toSource).
     scale = internal_scale(prep.data)
     layers: list[dict] = []
 
@@ -297,6 +298,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
     source_h, source_w = source_size(prep.data, (h, w))
     ox, oy = map(float, internal_origin(prep.data))
     return {"width": w, "height": h, "scale": scale, "origin_x": ox, "origin_y": oy,
+            "pieces": prep.data.get("pieces") or [],
             "source_width": source_w, "source_height": source_h,
             "stem": image.stem, "image": str(image), "layers": layers,
             "keypoints": kps, "stages": rows, "counts": counts}
@@ -319,6 +321,9 @@ _JS = r"""
 (function(){
 const D=JSON.parse(document.getElementById('pv-data').textContent);
 const W=D.width,H=D.height,S=D.scale||1,OX=D.origin_x||0,OY=D.origin_y||0,svg=document.getElementById('view'),kpg=document.getElementById('kp-layer');
+function toSource(x,y){x/=S;y/=S;const P=D.pieces||[];if(!P.length)return[x+OX,y+OY];let k=0,best=Infinity;
+ P.forEach((q,i)=>{const dx=Math.max(q[0]-x,0,x-q[0]-q[4]),dy=Math.max(q[1]-y,0,y-q[1]-q[5]),d=dx*dx+dy*dy;if(d<best){best=d;k=i}});
+ return[x-P[k][0]+P[k][2],y-P[k][1]+P[k][3]]}
 const COL={1:'#1e5aff',3:'#ff8c00',5:'#00aa3c',0:'none'},NAME={1:'endpoint',3:'junction',5:'corner'};
 const CYCLE={1:3,3:5,5:0,0:1};let vb={x:0,y:0,w:W,h:H};const pts=D.keypoints;
 function scale(){const m=svg.getScreenCTM();return m?m.a:1}
@@ -340,7 +345,7 @@ function draw(){kpg.textContent='';const s=scale();pts.forEach((p,i)=>{
 function typeVis(){[1,3,5].forEach(t=>{const on=document.getElementById('show-t'+t).checked;
  kpg.querySelectorAll('.ty'+t).forEach(c=>c.style.display=on?'':'none')})}
 function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.image.split(/[\\/]/).pop(),width:D.source_width,
- height:D.source_height,added:[],removed:[],retyped:[]};pts.forEach(p=>{const x=p.x/S+OX,y=p.y/S+OY;
+ height:D.source_height,added:[],removed:[],retyped:[]};pts.forEach(p=>{const[x,y]=toSource(p.x,p.y);
  if(p.orig===0){if(p.cur)r.added.push({x:+x.toFixed(1),y:+y.toFixed(1),type:NAME[p.cur]})}
  else if(p.cur===0)r.removed.push({x:x,y:y});else if(p.cur!==p.orig)r.retyped.push({x:x,y:y,type:NAME[p.cur]})});return r}
 function count(){const e=edits();document.getElementById('edit-count').textContent=
@@ -394,7 +399,7 @@ def render_html(data: dict) -> str:
         f'</code></td></tr>' for r in data["stages"])
     counts = "".join(f"<tr><td>{esc(k)}</td><td>{esc(json.dumps(v) if isinstance(v, dict) else str(v))}</td></tr>"
                      for k, v in data["counts"].items())
-    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "origin_x", "origin_y", "source_width",
+    payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "origin_x", "origin_y", "pieces", "source_width",
                                                  "source_height", "stem", "image", "keypoints")})
     payload = payload.replace("</", "<\\/")
     return f"""<!DOCTYPE html>

@@ -41,7 +41,7 @@ from stages.keypoints import (PACKAGED_PROCEDURAL, PACKAGED_TYPE_CLASSIFIER, PAC
                               _file_hash)
 from stages.keypoints.codes import JUNCTION, TYPE_CODES
 from stages.keypoints.valence import TypeClassifier, class_scores_at, valence_features
-from stages.prep import internal_origin, internal_scale, source_size
+from stages.prep import internal_frame, piece_windows, source_size
 
 # torch and the modules that need it are imported inside load_model/run, not here: rendering keypoints
 # (polyvec-inspect) and typing them from stored heatmaps need no torch, and neither does the engine's
@@ -186,14 +186,27 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     if grey.ndim != 2 or min(grey.shape) < 1:
         raise InputError(f"keypoints: expected a 2-D grey image, got shape {grey.shape}")
     model, name = load_model(c.weights)
-    x = network_input(grey, c.contrast_floor)
+    windows = piece_windows(prep.data, grey.shape)
+    x = network_input(grey, c.contrast_floor) if windows is None else None
     tiles = c.tile_size, c.tile_overlap
     mask = np.asarray(prep["mask"], bool) if "mask" in prep.arrays else None
     # Tiles with no pixel of the dilated band are not run: keypoints_from_heatmaps zeroes them anyway.
     needed = dilate_band(mask, c.band_dilation) if (c.restrict_to_band and mask is not None) else None
     bf16 = use_bf16(c.precision)
-    heatmaps = predict_views(model, x, list(c.test_time_views), *tiles, needed=needed,
-                             single_pass_max=c.single_pass_max, bf16=bf16)
+
+    def over_pieces(predict, channels: int) -> np.ndarray:
+        # A mosaic of far-apart parts: the network runs on each piece's window, normalised on its own, as
+        # on that part cropped alone, and not on the paper laid between them (zero in the maps anyway).
+        if windows is None:
+            return predict(x, needed)
+        out = np.zeros((channels,) + grey.shape, np.float32)
+        for win in windows:
+            out[(slice(None), *win)] = predict(network_input(grey[win], c.contrast_floor),
+                                               None if needed is None else np.ascontiguousarray(needed[win]))
+        return out
+
+    heatmaps = over_pieces(lambda xs, ns: predict_views(model, xs, list(c.test_time_views), *tiles, needed=ns,
+                                                        single_pass_max=c.single_pass_max, bf16=bf16), 4)
     ensemble = list(c.detection_ensemble)
     if ensemble:
         # Detection ensemble: H1 is the mean over the networks; the class maps (H2..H4), which the
@@ -201,8 +214,8 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
         h1 = heatmaps[0].copy()
         for w in ensemble:
             other, other_name = load_model(w)
-            h1 += predict_heatmaps(other, x, *tiles, detection_only=True, needed=needed,
-                                   single_pass_max=c.single_pass_max, bf16=bf16)[0]
+            h1 += over_pieces(lambda xs, ns: predict_heatmaps(other, xs, *tiles, detection_only=True, needed=ns,
+                                                              single_pass_max=c.single_pass_max, bf16=bf16), 1)[0]
             name += "+" + other_name
         heatmaps[0] = h1 / (1 + len(ensemble))
     heatmaps, points, types, scores = keypoints_from_heatmaps(cfg, heatmaps, mask, band=needed)
@@ -221,8 +234,7 @@ def run(cfg: dict, prep: Artifact) -> Artifact:
     return Artifact(arrays={"heatmaps": heatmaps.astype(np.float32), "points": points, "types": types,
                             "scores": scores},
                     data={"points": data_points, "weights": name, "count": len(data_points),
-                          "precision": "bf16" if bf16 else "fp32", "scale": internal_scale(prep.data),
-                          "origin": internal_origin(prep.data).tolist(),
+                          "precision": "bf16" if bf16 else "fp32", **internal_frame(prep.data),
                           "height": height, "width": width}, notes=notes)
 
 

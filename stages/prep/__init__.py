@@ -14,7 +14,7 @@ import numpy as np
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "11"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "12"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
@@ -22,7 +22,7 @@ STAGE_VERSION = "11"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        inverted (prep.invert), white line art on a transparent page read over black;
 #                     10: a drawing on a much larger page is cropped to its ink (prep.crop); 11: small
 #                        marks far from the drawing (dust on a scanned sheet) and the page's dark edge do
-#                        not widen the crop
+#                        not widen the crop; 12: parts far apart on a page are laid side by side (a mosaic)
 
 
 @dataclass
@@ -137,24 +137,74 @@ def internal_scale(data: dict) -> float:
 
 def internal_origin(data: dict) -> np.ndarray:
     """(x, y) in the drawing's pixels of the internal picture's corner: (0, 0), or where prep cropped a
-    drawing out of a larger page (``origin`` of a prep or keypoints artifact's ``data``)."""
+    drawing out of a larger page (``origin`` of a prep or keypoints artifact's ``data``; (0, 0) for a
+    mosaic of pieces, whose offsets are :func:`internal_pieces`')."""
     return np.asarray(data.get("origin") or (0, 0), np.float64)
+
+
+def internal_pieces(data: dict) -> np.ndarray | None:
+    """float64 (K, 6) ``(mosaic x, mosaic y, source x, source y, width, height)`` of each box of a
+    drawing whose far-apart parts prep laid side by side (``pieces`` of a prep or keypoints artifact's
+    ``data``, in the drawing's pixels), or None."""
+    pieces = data.get("pieces")
+    return np.asarray(pieces, np.float64).reshape(-1, 6) if pieces else None
+
+
+def piece_windows(data: dict, shape: tuple[int, int]) -> list[tuple[slice, slice]] | None:
+    """The internal (rows, columns) window of each piece of a mosaic (:func:`internal_pieces`) in a
+    picture of ``shape``, or None: work that looks at a pixel's surroundings (the keypoint network) runs
+    on each alone, as on a drawing cropped to that piece, and not on the paper between them."""
+    pieces = internal_pieces(data)
+    if pieces is None:
+        return None
+    scale, (h, w) = internal_scale(data), shape[-2:]
+    return [(slice(int(np.floor(y * scale)), min(h, int(np.ceil((y + ph) * scale)))),
+             slice(int(np.floor(x * scale)), min(w, int(np.ceil((x + pw) * scale)))))
+            for x, y, _, _, pw, ph in pieces]
+
+
+def internal_frame(data: dict) -> dict:
+    """The ``data`` keys that map a prep's internal pixels to the drawing's (``scale``, ``origin``,
+    ``pieces``): a later artifact that keeps them maps its points with :func:`to_source` alone."""
+    frame = {"scale": internal_scale(data), "origin": internal_origin(data).tolist()}
+    return dict(frame, pieces=data["pieces"]) if data.get("pieces") else frame
 
 
 def internal_is_source(data: dict) -> bool:
     """Whether the internal pixels are the drawing's (no resampling, no crop): the mappings below are
     the identity, and callers that keep their values as they are may skip them."""
-    return internal_scale(data) == 1 and not internal_origin(data).any()
+    return internal_scale(data) == 1 and not internal_origin(data).any() and internal_pieces(data) is None
+
+
+def _nearest_box(points: np.ndarray, corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Index of the box (corner, size) each point lies in, or the nearest one (a point on the paper
+    between a mosaic's pieces, or a curve's end a pixel beyond its box)."""
+    below = corners[None] - points[:, None]
+    above = points[:, None] - (corners + sizes)[None]
+    gap = np.maximum(np.maximum(below, above), 0.0)
+    return np.argmin((gap * gap).sum(axis=2), axis=1)
 
 
 def to_source(points, data: dict) -> np.ndarray:
-    """(N, 2) internal (x, y) → the drawing's pixels: ``internal / scale + origin``."""
-    return np.asarray(points, np.float64).reshape(-1, 2) / internal_scale(data) + internal_origin(data)
+    """(N, 2) internal (x, y) → the drawing's pixels: ``internal / scale + origin``; in a mosaic, each
+    point moves by the offset of the piece it lies in (or is nearest to)."""
+    at = np.asarray(points, np.float64).reshape(-1, 2) / internal_scale(data)
+    pieces = internal_pieces(data)
+    if pieces is None:
+        return at + internal_origin(data)
+    k = _nearest_box(at, pieces[:, 0:2], pieces[:, 4:6])
+    return at - pieces[k, 0:2] + pieces[k, 2:4]
 
 
 def to_internal(points, data: dict) -> np.ndarray:
-    """(N, 2) (x, y) in the drawing's pixels → internal: ``(source − origin) · scale``."""
-    return (np.asarray(points, np.float64).reshape(-1, 2) - internal_origin(data)) * internal_scale(data)
+    """(N, 2) (x, y) in the drawing's pixels → internal: ``(source − origin) · scale``; in a mosaic,
+    by the offset of the piece whose box holds the point (or is nearest to it)."""
+    at = np.asarray(points, np.float64).reshape(-1, 2)
+    pieces = internal_pieces(data)
+    if pieces is None:
+        return (at - internal_origin(data)) * internal_scale(data)
+    k = _nearest_box(at, pieces[:, 2:4], pieces[:, 4:6])
+    return (at - pieces[k, 2:4] + pieces[k, 0:2]) * internal_scale(data)
 
 
 def source_size(data: dict, internal_shape: tuple[int, int]) -> tuple[int, int]:

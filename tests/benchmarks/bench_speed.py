@@ -78,11 +78,12 @@ def scaled(image: Path, factor: int, folder: Path) -> Path:
     return path
 
 
-def on_a4_sheet(image: Path, folder: Path, dust: bool = False, dpi: int = 300) -> Path:
+def on_a4_sheet(image: Path, folder: Path, dust: bool = False, dpi: int = 300, two: bool = False) -> Path:
     """The drawing pasted on a 2480×3508 sheet (A4 at 300 dpi) of its own paper: grey levels drawn from
     its pixels lighter than its median (a flat sheet would change the page's contrast statistics); with
     ``dust``, six dark specks 5–13 px across far from it (scanner dust); at ``dpi`` 600 the drawing
-    upscaled 2× (bicubic) on a 4961×7016 sheet."""
+    upscaled 2× (bicubic) on a 4961×7016 sheet; with ``two``, the drawing turned 180° in the opposite
+    corner too (two sketches far apart on one sheet)."""
     import numpy as np
     from PIL import Image
 
@@ -94,12 +95,15 @@ def on_a4_sheet(image: Path, folder: Path, dust: bool = False, dpi: int = 300) -
     shape, at = ((3508, 2480), (400, 300)) if dpi == 300 else ((7016, 4961), (800, 600))
     sheet = np.random.default_rng(0).choice(paper, size=shape).astype(np.uint8)
     sheet[at[0]:at[0] + grey.shape[0], at[1]:at[1] + grey.shape[1]] = grey
+    if two:
+        sheet[shape[0] - at[0] - grey.shape[0]:shape[0] - at[0], shape[1] - at[1] - grey.shape[1]:shape[1] - at[1]] = \
+            grey[::-1, ::-1]
     if dust:
         yy, xx = np.ogrid[:3508, :2480]
         for cx, cy, r in [(120, 3300, 4), (2300, 200, 3), (2200, 3100, 5), (1500, 2600, 2.5), (150, 150, 3),
                           (2000, 1800, 6)]:
             sheet[(xx - cx) ** 2 + (yy - cy) ** 2 <= r * r] = 60
-    path = folder / f"{image.stem}_a4{'_dust' if dust else ''}{'_600' if dpi == 600 else ''}.png"
+    path = folder / f"{image.stem}_a4{'_dust' if dust else ''}{'_600' if dpi == 600 else ''}{'_two' if two else ''}.png"
     Image.fromarray(sheet).save(path)
     return path
 
@@ -173,6 +177,8 @@ def main() -> None:
                 polyvec([sheet], out, str(tmp / "a4f"), "prep.crop.enabled=false", env=env))
             dusty = str(on_a4_sheet(args.image, tmp, dust=True))
             row("same sheet with 6 specks of dust far from it", polyvec([dusty], out, str(tmp / "a4d"), env=env))
+            pair = str(on_a4_sheet(args.image, tmp, two=True))
+            row("it and itself turned 180° in opposite corners of the sheet", polyvec([pair], out, str(tmp / "a42"), env=env))
             fine = str(on_a4_sheet(args.image, tmp, dpi=600))
             row("the drawing 2× on an A4 sheet at 600 dpi (4961×7016)", polyvec([fine], out, str(tmp / "a4x"), env=env))
         if not args.skip_batch:

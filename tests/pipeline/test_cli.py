@@ -154,19 +154,26 @@ def test_wide_strokes_run_at_a_lower_resolution_and_come_back_in_their_pixels(tm
     assert all(abs(c["width"] - 16) < 2 for c in curves)      # widths in the drawing's pixels too
 
 
-@pytest.mark.slow
-def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_the_pages_pixels(tmp_path, cli):
-    """A sketch on a scanned sheet with three specks of dust far from it (issue #14): the later stages
-    work on the ink's box (prep.crop; the specks left out, and said), and the curves are where they are
-    on the page, as those of the same drawing alone, moved. The page is over ``prep.max_pixels`` (set
-    low here, as a 600-dpi sheet is over the default): that bounds the box, not the page."""
-    import numpy as np
+def _ellipse_and_line():
+    """240×200: a 3-px ellipse and a line across it, the sketch the page tests put on sheets."""
     from PIL import Image, ImageDraw
 
     alone = Image.new("L", (240, 200), 255)
     d = ImageDraw.Draw(alone)
     d.ellipse([20, 30, 220, 170], outline=0, width=3)
     d.line([(60, 100), (180, 110)], fill=0, width=3)
+    return alone
+
+
+@pytest.mark.slow
+def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_the_pages_pixels(tmp_path, cli):
+    """A sketch on a scanned sheet with three specks of dust far from it (issue #14): the later stages
+    work on the ink's box (prep.crop; the specks left out, and said), and the curves are where they are
+    on the page, as those of the same drawing alone, moved. The page is over ``prep.max_pixels`` (set
+    low here, as a 600-dpi sheet is over the default): that bounds the box, not the page."""
+    from PIL import Image, ImageDraw
+
+    alone = _ellipse_and_line()
     page = Image.new("L", (1700, 1200), 255)
     page.paste(alone, (900, 600))
     for cx, cy in [(100, 100), (1600, 150), (300, 1100)]:
@@ -181,6 +188,38 @@ def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_th
 
     moved = pts - (900, 600)
     assert cKDTree(ref_pts).query(moved)[0].max() < 0.5 and cKDTree(moved).query(ref_pts)[0].max() < 0.5
+
+
+@pytest.mark.slow
+def test_drawings_far_apart_on_a_page_are_vectorised_side_by_side_and_come_back_in_place(tmp_path, cli):
+    """Two sketches in opposite corners of a sheet (issue #14): their common box keeps most of the page,
+    so prep lays their boxes side by side (a mosaic, said on the console), and each one's curves come
+    back where it is on the page, as those of the same drawing alone, moved. The page is over
+    ``prep.max_pixels`` (set low here): the mosaic is not."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    alone = _ellipse_and_line()
+    page = Image.new("L", (1700, 1400), 255)
+    page.paste(alone, (100, 80))
+    d = ImageDraw.Draw(page)
+    d.polygon([(1320, 1300), (1420, 1120), (1520, 1300)], outline=0, width=3)
+    curves, pts = _resampled_run(tmp_path, cli, "two sketches.png", page, "2 parts far apart on the page",
+                                 "prep.max_pixels=1000000")
+    (tmp_path / "out").rename(tmp_path / "out_page")
+    ref, ref_pts = _resampled_run(tmp_path, cli, "alone.png", alone, "")
+    from scipy.ndimage import distance_transform_edt
+    from scipy.spatial import cKDTree
+
+    first = pts[(pts[:, 0] < 850) & (pts[:, 1] < 700)] - (100, 80)
+    assert cKDTree(ref_pts).query(first)[0].max() < 0.5 and cKDTree(first).query(ref_pts)[0].max() < 0.5
+    # The triangle's curves run along its strokes, in the page's pixels, and cover them.
+    second = pts[(pts[:, 0] > 850) & (pts[:, 1] > 700)]
+    ink = np.asarray(page) < 128
+    to_ink = distance_transform_edt(~ink)
+    assert len(second) and to_ink[second[:, 1].astype(int), second[:, 0].astype(int)].max() <= 1.5
+    rows, cols = np.nonzero(ink[700:, 850:])
+    assert cKDTree(second).query(np.c_[cols + 850.5, rows + 700.5])[0].max() < 3
 
 
 @pytest.mark.slow

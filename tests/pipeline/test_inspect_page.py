@@ -225,6 +225,18 @@ def _drawing_on_a_sheet(path):
     img.save(path)
 
 
+def _drawings_far_apart(path):
+    """1600 x 1400, a 3-px rectangle top left and ellipse bottom right: prep.crop lays their boxes side by
+    side, the ellipse's (from (1168, 1068)) at the mosaic's corner, the rectangle's below it."""
+    from PIL import Image, ImageDraw
+
+    img = Image.new("L", (1600, 1400), 255)
+    d = ImageDraw.Draw(img)
+    d.rectangle([100, 100, 260, 220], outline=0, width=3)
+    d.ellipse([1200, 1100, 1440, 1260], outline=0, width=3)
+    img.save(path)
+
+
 @pytest.mark.parametrize("draw, size, scale, on_page, in_drawing, near", [
     # the ellipse's top at (120, 30.5) drawing px is at (240, 61) on the 2x page
     (_thin_drawing, (240, 200), 2.0, (240, 61), (120.0, 30.5), 1.5),
@@ -233,7 +245,10 @@ def _drawing_on_a_sheet(path):
     (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0),
     # the ellipse's top at (720, 401) drawing px is at (152, 33) on the page of its ink's box from (568, 368)
     (_drawing_on_a_sheet, (1200, 1000), 1.0, (152, 33), (720.0, 401.0), 1.5),
-], ids=["supersampled", "downsampled", "cropped"])
+    # the ellipse's top at (1320, 1101) drawing px is at (152, 33) on the page of the mosaic; a page that
+    # added its origin (0, 0) saved it there
+    (_drawings_far_apart, (1600, 1400), 1.0, (152, 33), (1320.0, 1101.0), 1.5),
+], ids=["supersampled", "downsampled", "cropped", "mosaic"])
 @needs_chromium
 def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path, draw, size, scale, on_page,
                                                                         in_drawing, near):

@@ -286,6 +286,33 @@ def test_run_artifact_contract():
     assert img.shape == (48, 48, 3) and img.dtype == np.uint8
 
 
+def test_a_mosaic_of_far_apart_parts_runs_the_network_on_each_piece_alone():
+    """prep laid two far-apart drawings side by side (``pieces``): the network runs on each piece's
+    window, never on the paper between them, and finds there what it finds on that drawing alone; the
+    artifact keeps the pieces, so keypoint edits map through them."""
+    a, b = synthetic.cross(size=48), synthetic.line(size=48, angle=23.0, length=30.0, width=3.0)
+    grey = np.ones((48, 120), np.float32)
+    grey[:, :48], grey[:, 72:] = a.grey, b.grey
+    pieces = [[0, 0, 300, 10, 48, 48], [72, 0, 20, 500, 48, 48]]
+    prep = Artifact(arrays={"grey": grey, "mask": grey < 0.65}, data={"pieces": pieces, "height": 600, "width": 400})
+    model, _ = load_model("packaged")
+    calls = []
+    forward = model.forward
+    model.forward = lambda t: (calls.append(tuple(t.shape[-2:])), forward(t))[1]
+    try:
+        art = run(_cfg(), prep=prep)
+    finally:
+        del model.forward
+    assert calls == [(56, 56), (56, 56)]         # each 48-px piece, padded to the network's multiple
+    assert art.data["pieces"] == pieces and (art.data["height"], art.data["width"]) == (600, 400)
+    assert not art["heatmaps"][:, :, 48:72].any()
+    for d, x0 in ((a, 0), (b, 72)):
+        alone = run(_cfg(), prep=Artifact(arrays={"grey": d.grey, "mask": d.grey < 0.65}, data={}))
+        mine = art["points"][(art["points"][:, 0] >= x0) & (art["points"][:, 0] < x0 + 48)]
+        assert len(alone["points"]) > 0
+        np.testing.assert_allclose(np.sort(mine - [x0, 0], axis=0), np.sort(alone["points"], axis=0), atol=1e-4)
+
+
 def test_detection_ensemble_averages_h1_and_keeps_class_maps():
     """``detection_ensemble: [packaged_procedural]`` averages H1 of the main and the procedural network;
     the class maps (which the typing perceptron reads) stay the main network's; the default, ``[]``, is

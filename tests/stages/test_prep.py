@@ -408,10 +408,12 @@ def test_a_black_fill_wider_than_the_window_is_ink_not_shade():
 
 
 def _page_mask(art) -> np.ndarray:
-    """A prep's band on the whole drawing (a cropped prep's box put back where ``origin`` says)."""
+    """A prep's band on the whole drawing (a cropped prep's box put back where ``origin`` says, a
+    mosaic's pieces where theirs do)."""
     mask = np.zeros((art.data["height"], art.data["width"]), bool)
     x0, y0 = art.data["origin"] or (0, 0)
-    mask[y0:y0 + art["mask"].shape[0], x0:x0 + art["mask"].shape[1]] = art["mask"]
+    for mx, my, sx, sy, w, h in art.data.get("pieces") or [[0, 0, x0, y0, *art["mask"].shape[::-1]]]:
+        mask[sy:sy + h, sx:sx + w] = art["mask"][my:my + h, mx:mx + w]
     return mask
 
 
@@ -475,8 +477,10 @@ def test_dust_far_from_the_drawing_does_not_keep_the_whole_sheet():
     assert clean.data["origin"] is not None and art.data["origin"] == clean.data["origin"]
     np.testing.assert_array_equal(art.arrays["mask"], clean.arrays["mask"])
     assert any("5 small marks far from it left out" in n for n in art.notes), art.notes
+    # With both rules off (stop 43's box) the specks spread the box over the sheet: each is then a piece
+    # of a mosaic (stop 44 worked on the whole sheet).
     old = dict(CFG, crop=dict(CFG["crop"], max_speck_px=0, min_cluster_share=0.0))
-    assert prep.run(old, _encode(dusty, "PNG")).data["origin"] is None
+    assert len(prep.run(old, _encode(dusty, "PNG")).data["pieces"]) == 6
 
 
 def test_the_dark_edge_of_a_scanned_page_does_not_keep_the_whole_sheet():
@@ -489,8 +493,22 @@ def test_the_dark_edge_of_a_scanned_page_does_not_keep_the_whole_sheet():
     assert clean.data["origin"] is not None and art.data["origin"] == clean.data["origin"]
     np.testing.assert_array_equal(art.arrays["mask"], clean.arrays["mask"])
     assert any("the page's dark edge left out" in n for n in art.notes), art.notes
-    kept = dict(CFG, crop=dict(CFG["crop"], page_edge_fraction=0.9))
-    assert prep.run(kept, _encode(Image.fromarray(px, "L"), "PNG")).data["origin"] is None
+    kept = prep.run(dict(CFG, crop=dict(CFG["crop"], page_edge_fraction=0.9)), _encode(Image.fromarray(px, "L"), "PNG"))
+    assert kept.data["origin"] is None and [p[2] for p in kept.data["pieces"]] == [0, 288]  # the edge, the drawing
+
+
+def test_a_drawing_touching_a_dark_band_along_the_scan_is_not_taken_for_the_page_edge():
+    """The banana tree of the scanned samples touches a dark band along the top of its scan: one
+    component, running along the side. Only its pixels near the side are the page's edge; the rest is
+    the drawing, which must not be left out (with a short stroke far from it, that left a crop to the
+    stroke, or a mosaic of it alone, and no drawing)."""
+    px = np.asarray(_sheet_with_drawing(size=(1000, 1400))).copy()
+    px[:30, :] = np.linspace(150, 60, 30).astype(np.uint8)[:, None]          # darkest at the border
+    px[:222, 399:402] = 0                                                     # a stroke up into the band
+    px[1300:1303, 850:900] = 0                                                # a short stroke far away
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    drawing = np.asarray(_sheet_with_drawing(size=(1000, 1400))) < 128
+    assert (_page_mask(art) & drawing).sum() >= 0.95 * drawing.sum()
 
 
 def test_a_stroke_far_from_the_drawing_is_kept_in_the_box():
@@ -542,3 +560,55 @@ def test_faint_sparse_pencil_on_a_sheet_too_small_to_crop_is_not_blank():
     ref = sheet(0, 0.0) < 128
     mask = art.arrays["mask"]
     assert (mask & ref).sum() >= 0.9 * ref.sum() and (mask & ~ref).sum() <= 0.1 * ref.sum()
+
+
+def _two_drawings_far_apart(size=(1600, 2000), second=(1200, 1650)):
+    """``_sheet_with_drawing``'s sheet with a second drawing (a cross in a triangle) whose corner is at
+    ``second``: together their boxes hold ~7 % of the page, the box round both ~60 %."""
+    img = _sheet_with_drawing(size=size, at=(100, 150))
+    d = ImageDraw.Draw(img)
+    x, y = second
+    d.polygon([(x + 20, y + 200), (x + 120, y + 20), (x + 220, y + 200)], outline=0, width=3)
+    d.line([(x + 70, y + 90), (x + 170, y + 190)], fill=0, width=3)
+    d.line([(x + 70, y + 190), (x + 170, y + 90)], fill=0, width=3)
+    return img
+
+
+def test_drawings_far_apart_on_a_page_are_worked_on_side_by_side():
+    """Two drawings in opposite corners of a sheet: their common box keeps most of the page (stop 44
+    worked on all of it: 33 s for the elephant and the kitten on an A4 sheet, 14 s apart), so each
+    one's box is a piece of a mosaic laid out on paper; the band of each piece is the band of that
+    drawing cropped alone, and ``to_source``/``to_internal`` map each piece's pixels to its own place."""
+    img = _two_drawings_far_apart()
+    art = prep.run(CFG, _encode(img, "PNG"))
+    pieces = art.data["pieces"]
+    assert art.data["origin"] is None and len(pieces) == 2, art.data
+    assert any("2 parts far apart on the page" in n and "prep.crop" in n for n in art.notes), art.notes
+    assert art["mask"].size < 0.2 * 1600 * 2000
+    ref = np.asarray(img) < 128
+    np.testing.assert_array_equal(_page_mask(art), ref)
+    m = CFG["crop"]["margin_px"]
+    # Each piece is its drawing's box grown by the margin, in source pixels, on multiples of 12 in the mosaic.
+    boxes = sorted((sx, sy, w, h) for _, _, sx, sy, w, h in pieces)
+    for (sx, sy, w, h), (rows, cols) in zip(boxes, (np.nonzero(ref[:1000, :1000]), np.nonzero(ref[1000:, 1000:]))):
+        top = 0 if sy < 1000 else 1000
+        assert (sx, sy, w, h) == (cols.min() + top - m, rows.min() + top - m, np.ptp(cols) + 1 + 2 * m, np.ptp(rows) + 1 + 2 * m)
+    assert all(mx % 12 == 0 and my % 12 == 0 for mx, my, *_ in pieces)
+    for mx, my, sx, sy, w, h in pieces:
+        source = np.array([[sx + 3.5, sy + 7.25], [sx + w - 0.5, sy + h - 0.5]])
+        internal = prep.to_internal(source, art.data)
+        np.testing.assert_allclose(internal, source - [sx, sy] + [mx, my])
+        np.testing.assert_allclose(prep.to_source(internal, art.data), source)
+    # A point on the paper laid between pieces goes with the nearest piece.
+    (ax, ay, asx, asy, aw, ah), = [p for p in pieces if p[0] == 0 and p[1] == 0]
+    np.testing.assert_allclose(prep.to_source([[aw + 2.0, 5.0]], art.data), [[asx + aw + 2.0, asy + 5.0]])
+    # One drawing on the page, or crop off: as before.
+    off = prep.run(dict(CFG, crop=dict(CFG["crop"], enabled=False)), _encode(img, "PNG"))
+    assert "pieces" not in off.data and off["mask"].shape == (2000, 1600)
+
+
+def test_a_mosaic_is_not_made_when_the_pieces_would_keep_much_of_the_page():
+    """Pieces holding more than ``crop.max_area_fraction`` of the page together: the page is kept."""
+    img = _two_drawings_far_apart(size=(650, 760), second=(380, 500))
+    art = prep.run(CFG, _encode(img, "PNG"))
+    assert "pieces" not in art.data and art.data["origin"] is None and art["mask"].shape == (760, 650)
