@@ -562,10 +562,12 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
     components smaller than ``min_component_px`` are dropped; components no wider or taller than
     ``crop.max_speck_px`` (dust), the pixels near the sides (:data:`PAGE_EDGE_BAND_PX`) of components
     running along a side of the image for at least ``crop.page_edge_fraction`` of it (the page's dark
-    edge in a scan) and clusters of ink (pieces
-    about ``crop.cluster_gap_px`` apart at most, on a grid of 16-px cells) holding less than
-    ``crop.min_cluster_share`` of the largest one's ink do not widen the box.  The box bounds the rest,
-    grown by ``crop.margin_px`` and clipped to the image.  Linear in the page.
+    edge in a scan) and clusters of ink (pieces about ``crop.cluster_gap_px`` apart at most, on a grid
+    of 16-px cells) holding less than ``crop.min_cluster_share`` of the largest one's ink do not widen
+    the box.  The box bounds the rest, grown by ``crop.margin_px`` and clipped to the image; when it
+    keeps too much of the page, each kept cluster's box so grown (overlapping ones merged) is returned
+    instead, if together they keep little enough (parts far apart: :func:`_mosaic`).  Linear in the
+    page (the merge is quadratic in the clusters, which the 16-px cells and the share bound).
     """
     crop = c.crop
     paper, grain = paper_statistics(lit)
