@@ -57,6 +57,9 @@ Choices made on purpose (vs. the references; measurements in stages/DECISIONS.md
   diagonal, so the solution is the same up to the CG stopping rule, and one solve avoids a Python loop
   over hundreds of tiny components in a scan.  The singularity loop is therefore global: it stops
   when the *total* count stops falling.
+* **A mosaic's pieces** (far-apart parts that prep laid side by side) get steps 1–2 on their own
+  windows: the cutoff's and the coherence's maxima are then each part's, as on it cropped alone
+  (the parts' band pixels are one system all the same).
 * **CG tolerance.**  The references run Eigen's CG to machine epsilon; we stop at a relative residual
   of ``cg_rtol`` = 1e-6, where the roots already match a much tighter solve, and ``cg_max_iterations``
   caps every solve (bounds the run time).
@@ -88,6 +91,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.field import FieldConfig
+from stages.prep import piece_windows
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,7 +441,8 @@ def _field_operator(k: sp.csr_matrix, off: np.ndarray):
     return apply
 
 
-def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
+def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
+                  windows: list[tuple[slice, slice]] | None = None) -> dict:
     """PolyVector field on the band and the singularity loop.
 
     Parameters
@@ -447,6 +452,10 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
     mask : numpy.ndarray
         bool (H, W), the narrow band.
     cfg : FieldConfig
+    windows : list of (slice, slice), optional
+        A mosaic's pieces (:func:`stages.prep.piece_windows`): the tangents' cutoff and the coherence
+        weights' normalisation (maxima over the image) are each piece's own, as on that part cropped
+        alone; the rest of the pixels are paper.
 
     Returns
     -------
@@ -456,8 +465,14 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig) -> dict:
     """
     t_start = time.perf_counter()
     h, w = mask.shape
-    tau, gmag = image_tangents(grey, cfg.gradient_cutoff)
-    w0 = coherence_weights(tau, gmag)
+    if windows is None:
+        tau, gmag = image_tangents(grey, cfg.gradient_cutoff)
+        w0 = coherence_weights(tau, gmag)
+    else:
+        tau, gmag, w0 = np.zeros((h, w), np.complex128), np.zeros((h, w)), np.zeros((h, w))
+        for win in windows:
+            tau[win], gmag[win] = image_tangents(grey[win], cfg.gradient_cutoff)
+            w0[win] = coherence_weights(tau[win], gmag[win])
     index = _region_index(mask)
     n = int(mask.sum())
     tau_b = tau[mask]
@@ -535,7 +550,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         raise InputError(f"field: grey and mask must be equal-shaped 2-D arrays, got {grey.shape} and {mask.shape}")
     if not np.all(np.isfinite(grey)):
         raise InputError("field: grey image contains NaN or infinite values")
-    out = compute_field(grey.astype(np.float64), mask.astype(bool), conf)
+    out = compute_field(grey.astype(np.float64), mask.astype(bool), conf, piece_windows(prep.data, grey.shape))
     arrays = {
         "c0": out["c0"].astype(np.complex64), "c2": out["c2"].astype(np.complex64),
         "roots": out["roots"].astype(np.complex64), "singular": out["singular"],

@@ -127,6 +127,26 @@ def test_artifact_contract():
     assert np.all(same | swapped)
 
 
+def test_each_piece_of_a_mosaic_gets_the_weights_it_gets_alone():
+    """prep laid a dark tee and a faint cross side by side (``pieces``): the tangents' cutoff and the
+    coherence weights are each piece's, so the faint piece's smart weights and field are those of it
+    alone; with one normalisation over the picture the dark tee sets both maxima."""
+    dark = synthetic.tee(size=64)
+    faint = 1.0 - 0.45 * (1.0 - synthetic.cross(size=64).grey)
+    grey = np.ones((64, 64 + 24 + 64))
+    grey[:, :64], grey[:, 88:] = dark.grey, faint
+    mask = np.zeros(grey.shape, bool)
+    mask[:, :64], mask[:, 88:] = dark.grey < THRESHOLD, faint < 0.9
+    pieces = [[0, 0, 10, 10, 64, 64], [88, 0, 300, 20, 64, 64]]
+    mosaic = field.run(CFG, prep=Artifact(arrays={"grey": grey, "mask": mask}, data={"pieces": pieces}))
+    alone = _run(faint, faint < 0.9)
+    np.testing.assert_allclose(mosaic["smart_weights"][:, 88:], alone["smart_weights"], atol=1e-6)
+    on = faint < 0.9
+    assert _angle_error(mosaic["roots"][:, 88:][on][:, 0] / alone["roots"][on][:, 0], 0.0).max() < 1.0
+    whole = field.run(CFG, prep=Artifact(arrays={"grey": grey, "mask": mask}))
+    assert np.abs(whole["smart_weights"][:, 88:] - alone["smart_weights"]).max() > 0.01
+
+
 def _frame(theta):
     """Roots of a frame: unit tangent at ``theta`` and a shorter orthogonal second root."""
     u = np.exp(1j * theta)
