@@ -22,7 +22,8 @@ STAGE_VERSION = "12"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        inverted (prep.invert), white line art on a transparent page read over black;
 #                     10: a drawing on a much larger page is cropped to its ink (prep.crop); 11: small
 #                        marks far from the drawing (dust on a scanned sheet) and the page's dark edge do
-#                        not widen the crop; 12: parts far apart on a page are laid side by side (a mosaic)
+#                        not widen the crop; 12: parts far apart on a page are laid side by side (a mosaic),
+#                        a photographed sheet is cut out of the darker background round it
 
 
 @dataclass
@@ -92,8 +93,11 @@ class CropConfig:
     min_cluster_share: float
     max_speck_px: int
     page_edge_fraction: float
+    sheet_rim_share: float
 
     def __post_init__(self) -> None:
+        if not 0 < self.sheet_rim_share <= 1:
+            raise InputError("prep.crop: need 0 < sheet_rim_share ≤ 1")
         if self.margin_px < 0 or not 0 < self.max_area_fraction <= 1:
             raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
         if (self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0

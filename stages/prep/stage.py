@@ -96,6 +96,15 @@ Choices made on purpose
   page, not the ink (the elephant and the kitten on an A4 sheet: 33 s and 1.7 GB, against 14 s for
   the two alone); the field, the graph and the topology see the same disjoint strokes, and the
   keypoint network runs on each piece alone (:func:`~stages.prep.piece_windows`).
+* **A photographed sheet is cut out of the ground round it** (``crop.sheet_rim_share``; issue #14, not
+  in the references).  Before the lighting is flattened, the largest bright region of 16-px cells'
+  medians (holes filled) is the sheet when darker cells run along at least ``sheet_rim_share`` (0.75)
+  of the image's border; the later steps, the crop's box included, work on its box, one cell inside
+  it, and ``origin``/``pieces`` are moved by its corner.  Why: divided by its own brightness, the desk
+  became speckle and the sheet's border a frame of band (``photo_desk.png``: 83 curves at 1/4
+  resolution, the border traced); the validation splits' and realvec_dev's images have at most 0.15
+  of their border darker, the banana tree's scan 0.24, a scan's dark strip down one side 0.3
+  (stages/DECISIONS.md).
 * **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
   (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
   A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
@@ -444,6 +453,13 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             grey = 1.0 - grey
             notes.append(f"light strokes on dark paper (paper level {level:.2f}): inverted (prep.invert)"
                          if c.invert == "auto" else "inverted (prep.invert=always)")
+    source_shape, sheet = grey.shape, None
+    if c.crop.enabled and (sheet := _sheet_box(grey, c)) is not None:
+        # Before the lighting: divided by its own brightness, the ground round the sheet became speckle.
+        y0, y1, x0, x1 = sheet
+        notes.append(f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} "
+                     f"box at ({x0}, {y0}) (prep.crop; the curves are mapped back)")
+        grey = grey[y0:y1, x0:x1]
     if c.lighting.enabled:
         lit, variation = flatten_lighting(grey, c.lighting.window_px, c.lighting.min_range)
         if lit is not grey:
@@ -507,6 +523,11 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
                                     max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
         if not mask.any():
             raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
+    if sheet is not None:
+        # Every box so far is the sheet's: moved by its corner, in the photograph's pixels.
+        h, w = source_shape
+        origin = [origin[0] + sheet[2], origin[1] + sheet[0]] if origin else (None if pieces else [sheet[2], sheet[0]])
+        pieces = [[mx, my, sx + sheet[2], sy + sheet[0], pw, ph] for mx, my, sx, sy, pw, ph in pieces or []]
     return Artifact(arrays={"grey": grey, "mask": mask},
                     data={"height": h, "width": w, "scale": scale, "origin": origin, **({"pieces": pieces} if pieces else {}),
                           "stroke_width": width,
@@ -549,6 +570,38 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
         raise InputError(f"image is {ink:.0%} ink (more than prep.max_ink_fraction): not a line drawing")
     return grey, mask, {"ink_fraction": ink, "paper_level": paper, "paper_grain": grain, "band_threshold": threshold,
                         "band_smoothing": smoothing}
+
+
+def _sheet_box(grey: np.ndarray, c: PrepConfig, cell: int = 16) -> tuple[int, int, int, int] | None:
+    """The box ``(y0, y1, x0, x1)`` of a sheet photographed on a darker ground (a desk), or None.
+
+    On 16-px cells' mean grey, the sheet is the largest 8-connected region of cells within
+    ``max(min_contrast, half the range of the cells' 5th–90th percentiles)`` of the paper (the 90th
+    percentile), its holes (the drawing) filled.  It is a sheet on a ground only when the cells outside
+    it run along at least ``crop.sheet_rim_share`` of the image's border (a scan's dark page edge along
+    one side is 0.25–0.3 of it, and a drawing's strokes reaching the border far less).  The box is the
+    region's, one cell inside it (the sheet's shadowed rim).  Linear in the image.
+    """
+    h, w = grey.shape
+    hc, wc = h // cell, w // cell
+    if hc < 8 or wc < 8:
+        return None
+    # Cells' means (a median took 2.3 s on a 600-dpi A4 sheet): a stroke darkens its cells, which are
+    # holes of the sheet, filled, unless they touch the image's border.
+    means = grey[:hc * cell, :wc * cell].reshape(hc, cell, wc, cell).mean(axis=(1, 3), dtype=np.float64)
+    paper, ground = np.percentile(means, (90, 5))
+    bright = means >= paper - max(c.contrast.min_contrast, 0.5 * (paper - ground))
+    labels, n = ndimage.label(bright, structure=np.ones((3, 3)))
+    if n == 0:
+        return None
+    sheet = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
+    rim = np.concatenate([sheet[0], sheet[-1], sheet[:, 0], sheet[:, -1]])
+    if 1.0 - rim.mean() < c.crop.sheet_rim_share:
+        return None
+    rows, cols = np.flatnonzero(sheet.any(axis=1)), np.flatnonzero(sheet.any(axis=0))
+    y0, y1 = (rows[0] + 1) * cell, min(h, rows[-1] * cell)
+    x0, x1 = (cols[0] + 1) * cell, min(w, cols[-1] * cell)
+    return (int(y0), int(y1), int(x0), int(x1)) if y1 - y0 >= 8 * cell and x1 - x0 >= 8 * cell else None
 
 
 def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, int]], int, bool] | None:

@@ -612,3 +612,57 @@ def test_a_mosaic_is_not_made_when_the_pieces_would_keep_much_of_the_page():
     img = _two_drawings_far_apart(size=(650, 760), second=(380, 500))
     art = prep.run(CFG, _encode(img, "PNG"))
     assert "pieces" not in art.data and art.data["origin"] is None and art["mask"].shape == (760, 650)
+
+
+def _photographed_sheet(seed=0):
+    """900×1200: a sheet (grey ~235, lit unevenly: 215 to 245 across) photographed on a darker desk
+    round it on every side (60 to 140 from corner to corner, noisy), ``_sheet_with_drawing``'s drawing
+    on it; and the drawing's ink."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:1200, 0:900]
+    px = 60 + 80 * (xx / 900 + yy / 1200) / 2 + rng.normal(0, 10, (1200, 900))
+    px[150:1050, 120:780] = np.linspace(215, 245, 660)[None, :] + rng.normal(0, 2, (900, 660))
+    drawing = np.asarray(_sheet_with_drawing(size=(900, 1200), at=(330, 450))) < 128
+    px[drawing] = 40
+    return Image.fromarray(np.clip(px, 0, 255).astype(np.uint8), "L"), drawing
+
+
+def test_a_photographed_sheet_is_cut_out_of_the_desk_round_it():
+    """A photograph of a sheet on a desk: the desk, divided by its own brightness with the lighting,
+    became speckle, and the sheet's border a frame of band (stop 44: 83 curves at 1/4 resolution along
+    the border of ``photo_desk.png``). The sheet is found first, on the grey as photographed: the band
+    is the drawing's alone, at full resolution, in the photograph's pixels, and the console says so."""
+    img, drawing = _photographed_sheet()
+    art = prep.run(CFG, _encode(img, "PNG"))
+    assert any("a sheet on a darker ground" in n and "prep.crop" in n for n in art.notes), art.notes
+    assert art.data["scale"] == 1.0 and (art.data["height"], art.data["width"]) == (1200, 900)
+    x0, y0 = art.data["origin"]
+    assert x0 >= 120 and y0 >= 150        # the drawing's box inside the sheet, moved by the sheet's corner
+    page = _page_mask(art)
+    assert (page & drawing).sum() >= 0.95 * drawing.sum() and (page & ~drawing).sum() <= 0.05 * drawing.sum()
+    off = prep.run(dict(CFG, crop=dict(CFG["crop"], enabled=False)), _encode(img, "PNG"))
+    assert off.data["origin"] is None and not any("darker ground" in n for n in off.notes)
+
+
+def test_a_dark_edge_along_one_side_is_not_a_desk():
+    """A scan's dark strip down one side runs along a quarter of the border, not
+    ``crop.sheet_rim_share`` of it: no sheet is cut out (the page-edge rule handles it)."""
+    px = np.asarray(_sheet_with_drawing()).copy()
+    px[:, :40] = 60
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    assert not any("darker ground" in n for n in art.notes), art.notes
+
+
+def test_two_drawings_far_apart_on_a_photographed_sheet_come_back_in_the_photographs_pixels():
+    """The sheet cut out of the desk, then its two drawings far apart laid side by side: each piece's
+    corner in the photograph is its corner on the sheet moved by the sheet's."""
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:2000, 0:1600]
+    px = 60 + 80 * (xx / 1600 + yy / 2000) / 2 + rng.normal(0, 10, (2000, 1600))
+    px[80:1920, 50:1550] = 235 + rng.normal(0, 2, (1840, 1500))
+    drawing = np.asarray(_two_drawings_far_apart(size=(1600, 2000), second=(1000, 1450))) < 128
+    px[drawing] = 40
+    art = prep.run(CFG, _encode(Image.fromarray(np.clip(px, 0, 255).astype(np.uint8), "L"), "PNG"))
+    assert any("a sheet on a darker ground" in n for n in art.notes) and len(art.data["pieces"]) == 2, art.notes
+    page = _page_mask(art)
+    assert (page & drawing).sum() >= 0.95 * drawing.sum() and (page & ~drawing).sum() <= 0.05 * drawing.sum()
