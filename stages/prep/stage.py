@@ -133,6 +133,8 @@ SPARSE_INK_BLACK_PERCENTILE = 25.0
 #: A page's dark edge is the ink, within this many pixels of the sides, of the components that run along
 #: a side (an 18-px strip at 300 dpi, 36 at 600); the rest of such a component is a drawing touching it.
 PAGE_EDGE_BAND_PX = 64
+#: Side of the cells the crop looks at the page in (the ink's clusters, the photographed sheet): px.
+CELL_PX = 16
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
@@ -467,7 +469,10 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
                          "(prep.lighting)")
         grey = lit
     h, w = grey.shape
-    origin = pieces = None
+    # Boxes below are the sheet's: their corners in the photograph are moved by its corner.
+    sy, sx = (sheet[0], sheet[2]) if sheet is not None else (0, 0)
+    origin = None if sheet is None else [sx, sy]
+    pieces = None
     if c.crop.enabled and (found := _ink_box(grey, c)) is not None:
         boxes, left_out, edge = found
         what = [f"{left_out} small mark{'s' if left_out > 1 else ''} far from it"] if left_out else []
@@ -475,14 +480,15 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         marks = f", {' and '.join(what)} left out" if what else ""
         if len(boxes) == 1:
             (y0, y1, x0, x1), = boxes
-            origin = [x0, y0]
+            origin = [x0 + sx, y0 + sy]
             # The box's own contrast stretch and band: on a sheet the page's percentiles are the paper's
             # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
             grey, mask, band_data = _grey_and_band(grey[y0:y1, x0:x1], c)
             notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
                          f"{x1 - x0}×{y1 - y0} box at ({x0}, {y0}){marks} (prep.crop; the curves are mapped back)")
         else:
-            grey, mask, pieces, band_data = _mosaic(grey, boxes, c)
+            grey, mask, pieces, band_data = _mosaic(grey, boxes, c, (sx, sy))
+            origin = None
             notes.append(f"{len(boxes)} parts far apart on the page, {sum(p[4] * p[5] for p in pieces) / (h * w):.0%} "
                          f"of it: working on their boxes side by side ({grey.shape[1]}×{grey.shape[0]})"
                          f"{marks} (prep.crop; the curves are mapped back)")
@@ -523,13 +529,8 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
                                     max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
         if not mask.any():
             raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
-    if sheet is not None:
-        # Every box so far is the sheet's: moved by its corner, in the photograph's pixels.
-        h, w = source_shape
-        origin = [origin[0] + sheet[2], origin[1] + sheet[0]] if origin else (None if pieces else [sheet[2], sheet[0]])
-        pieces = [[mx, my, sx + sheet[2], sy + sheet[0], pw, ph] for mx, my, sx, sy, pw, ph in pieces or []]
     return Artifact(arrays={"grey": grey, "mask": mask},
-                    data={"height": h, "width": w, "scale": scale, "origin": origin, **({"pieces": pieces} if pieces else {}),
+                    data={"height": source_shape[0], "width": source_shape[1], "scale": scale, "origin": origin, **({"pieces": pieces} if pieces else {}),
                           "stroke_width": width,
                           "mode": mode, **band_data}, notes=notes)
 
@@ -572,16 +573,17 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
                         "band_smoothing": smoothing}
 
 
-def _sheet_box(grey: np.ndarray, c: PrepConfig, cell: int = 16) -> tuple[int, int, int, int] | None:
+def _sheet_box(grey: np.ndarray, c: PrepConfig) -> tuple[int, int, int, int] | None:
     """The box ``(y0, y1, x0, x1)`` of a sheet photographed on a darker ground (a desk), or None.
 
-    On 16-px cells' mean grey, the sheet is the largest 8-connected region of cells within
+    On :data:`CELL_PX` cells' mean grey, the sheet is the largest 8-connected region of cells within
     ``max(min_contrast, half the range of the cells' 5th–90th percentiles)`` of the paper (the 90th
     percentile), its holes (the drawing) filled.  It is a sheet on a ground only when the cells outside
     it run along at least ``crop.sheet_rim_share`` of the image's border (a scan's dark page edge along
     one side is 0.25–0.3 of it, and a drawing's strokes reaching the border far less).  The box is the
     region's, one cell inside it (the sheet's shadowed rim).  Linear in the image.
     """
+    cell = CELL_PX
     h, w = grey.shape
     hc, wc = h // cell, w // cell
     if hc < 8 or wc < 8:
@@ -638,15 +640,14 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
         along = np.maximum(along, np.bincount(line, minlength=n + 1) / length)
     page_edge = along >= crop.page_edge_fraction
     page_edge[0] = False
-    edge_pixels = []
+    edge = None
     if page_edge.any():
+        edge = np.zeros_like(ink)
         b = min(PAGE_EDGE_BAND_PX, h // 2, w // 2)
         for rows, cols in ((slice(0, b), slice(0, w)), (slice(h - b, h), slice(0, w)),
                            (slice(b, h - b), slice(0, b)), (slice(b, h - b), slice(w - b, w))):
-            part = page_edge[labels[rows, cols]]
-            ink[rows, cols] &= ~part
-            yy, xx = np.nonzero(part)
-            edge_pixels.append(np.c_[yy + rows.start, xx + cols.start])
+            edge[rows, cols] = page_edge[labels[rows, cols]]
+        ink &= ~edge
         labels, n = ndimage.label(ink, structure=np.ones((3, 3)))
         if n == 0:
             return None
@@ -657,7 +658,7 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
     strokes = marks & (spans > crop.max_speck_px)
     if not strokes.any():
         return None
-    cell = 16
+    cell = CELL_PX
     hc, wc = -(-h // cell), -(-w // cell)
     padded = np.zeros((hc * cell, wc * cell), dtype=bool)
     padded[:h, :w] = np.concatenate([[False], strokes])[labels]
@@ -689,12 +690,11 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
     # What is left out: the specks and small clusters whose bounding box reaches past every box, and
     # the page's edge where it lies outside them.
     inside = np.zeros(n, dtype=bool)
-    edge = np.concatenate(edge_pixels) if edge_pixels else np.zeros((0, 2), int)
-    edge_outside = np.ones(len(edge), dtype=bool)
     for by0, by1, bx0, bx1 in boxes:
         inside |= ((bounds[:, 0] >= by0) & (bounds[:, 1] <= by1) & (bounds[:, 2] >= bx0) & (bounds[:, 3] <= bx1))
-        edge_outside &= ~((edge[:, 0] >= by0) & (edge[:, 0] < by1) & (edge[:, 1] >= bx0) & (edge[:, 1] < bx1))
-    return boxes, int(np.count_nonzero(marks & ~inside)), bool(edge_outside.any())
+        if edge is not None:
+            edge[by0:by1, bx0:bx1] = False
+    return boxes, int(np.count_nonzero(marks & ~inside)), edge is not None and bool(edge.any())
 
 
 def _merged_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
@@ -716,14 +716,15 @@ def _merged_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int
     return sorted(tuple(int(v) for v in row) for row in b)
 
 
-def _mosaic(lit: np.ndarray, boxes: list[tuple[int, int, int, int]], c: PrepConfig
+def _mosaic(lit: np.ndarray, boxes: list[tuple[int, int, int, int]], c: PrepConfig, offset: tuple[int, int]
             ) -> tuple[np.ndarray, np.ndarray, list[list[int]], dict]:
     """The ``boxes`` of ``lit``, each contrast-normalised and banded on its own (as if cut out by hand),
     laid side by side in rows (tallest first) with ``crop.margin_px`` of white paper between them.
 
     Corners sit on multiples of 12, so every downsampling factor cuts each piece into the blocks it
     would cut it into alone.  Returns the grey, the band, each piece's ``[mosaic x, mosaic y, source
-    x, source y, width, height]`` and the band data: the largest piece's, with every piece's in
+    x, source y, width, height]`` (the source corner moved by ``offset``, (x, y): the corner of a
+    photographed sheet ``lit`` was cut from) and the band data: the largest piece's, with every piece's in
     ``pieces_band``.  A piece with no band of its own (nothing but paper once it is stretched on its
     own) is left out; when every one is, its error is raised.
     """
@@ -755,7 +756,7 @@ def _mosaic(lit: np.ndarray, boxes: list[tuple[int, int, int, int]], c: PrepConf
     for i, ((y0, y1, x0, x1), g, m, _) in enumerate(found):
         my, mx = places[i]
         grey[my:my + y1 - y0, mx:mx + x1 - x0], mask[my:my + y1 - y0, mx:mx + x1 - x0] = g, m
-        pieces.append([mx, my, x0, y0, x1 - x0, y1 - y0])
+        pieces.append([mx, my, x0 + offset[0], y0 + offset[1], x1 - x0, y1 - y0])
     bands = [bd for _, _, _, bd in found]
     largest = max(range(len(found)), key=lambda i: found[i][2].sum())
     return grey, mask, pieces, dict(bands[largest], ink_fraction=float(mask.mean()), pieces_band=bands)

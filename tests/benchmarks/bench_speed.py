@@ -18,7 +18,8 @@ Rows:
   ``--full-resolution`` adds the same rows with ``prep.downsample.enabled=false`` (the stages' own curve);
 - the drawing on an A4 sheet at 300 dpi (2480×3508, grey levels of its own paper around it; the issue's
   "page scanned at 300 dpi"), the same with ``prep.crop.enabled=false``, the sheet with six specks of
-  dust far from the drawing, and the drawing 2× on the sheet at 600 dpi (4961×7016);
+  dust far from the drawing, the drawing and itself turned 180° in opposite corners of the sheet, and
+  the drawing 2× on the sheet at 600 dpi (4961×7016);
 - 8 drawings at 512² (the 13 drawings' first 8, fitted into 512×512 on white) with 1 and 2 workers of
   a local cluster (``runtime.cluster=local``), and the speed-up.
 
