@@ -193,7 +193,9 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         drawing: prep's crop), ``pieces`` (a mosaic's, :func:`~stages.prep.internal_pieces`; [] if none), ``stem``, ``image``; ``layers``: list of ``{"id", "label", "svg",
         "on"}`` (SVG markup in image pixel coordinates); ``keypoints``: the editable points
         ``{"x", "y", "orig", "cur"}`` (``orig`` 0 = added, ``cur`` 0 = removed); ``stages``: the side
-        panel rows; ``counts``.
+        panel rows; ``notes``: ``(stage, note)`` for what the stages said on the console (the sheet cut
+        out of a photo, the parts laid side by side, the resampling: why the page shows what it shows);
+        ``counts``.
     """
     image = Path(image)
     prep = store.load("prep", keys["prep"])
@@ -288,11 +290,12 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
                 else:
                     kps[e["keypoint"]]["cur"] = int(e["type"])
         counts["keypoints"] = {TYPE_NAMES[t]: sum(p["cur"] == t for p in kps) for t in (1, 3, 5)}
-    rows = []
+    rows, notes = [], []
     for stage in STAGE_ORDER:
         if stage not in keys:
             continue
         m = store.manifest(stage, keys[stage])
+        notes += [(stage, note) for note in m.get("warnings", [])]
         rows.append({"stage": stage, "key": keys[stage][:12], "seconds": m.get("duration_s"),
                      "peak_mb": m.get("peak_rss_mb"), "config": _config_diff(stage, m.get("config", {}))})
     source_h, source_w = source_size(prep.data, (h, w))
@@ -301,7 +304,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
             "pieces": prep.data.get("pieces") or [],
             "source_width": source_w, "source_height": source_h,
             "stem": image.stem, "image": str(image), "layers": layers,
-            "keypoints": kps, "stages": rows, "counts": counts}
+            "keypoints": kps, "stages": rows, "notes": notes, "counts": counts}
 
 
 # -- HTML --------------------------------------------------------------------------------------
@@ -309,7 +312,7 @@ _CSS = """
 *{box-sizing:border-box}body{margin:0;font:13px system-ui,sans-serif;display:flex;height:100vh;overflow:hidden}
 #side{width:380px;overflow:auto;padding:8px 10px;border-right:1px solid #ccc;background:#fafafa}
 #main{flex:1;position:relative;background:#fff}#view path,#view circle.m{vector-effect:non-scaling-stroke}#view{width:100%;height:100%;display:block;cursor:crosshair}
-h1{font-size:15px;margin:4px 0 8px}h2{font-size:13px;margin:12px 0 4px}label{display:block;margin:2px 0}
+h1{font-size:15px;margin:4px 0 8px}ul{margin:2px 0;padding-left:16px;font-size:11px}h2{font-size:13px;margin:12px 0 4px}label{display:block;margin:2px 0}
 table{border-collapse:collapse;font-size:11px}td,th{border-bottom:1px solid #ddd;padding:2px 4px;text-align:left;
 vertical-align:top}code{font-size:11px}textarea{width:100%;height:120px;font-size:11px}
 .kp{stroke:#000;stroke-width:1px;vector-effect:non-scaling-stroke;cursor:pointer}.kp.t0{fill:none;stroke:#888;
@@ -397,6 +400,8 @@ def render_html(data: dict) -> str:
         f'<tr><td>{esc(r["stage"])}</td><td><code>{esc(r["key"])}</code></td><td>{r["seconds"] or 0:.2f}</td>'
         f'<td>{r["peak_mb"] or ""}</td><td><code>{esc(json.dumps(r["config"], ensure_ascii=False)) if r["config"] else "defaults"}'
         f'</code></td></tr>' for r in data["stages"])
+    notes = "".join(f"<li><b>{esc(stage)}</b>: {esc(note)}</li>" for stage, note in data.get("notes", []))
+    notes = f'<h2>what was done to the drawing</h2><ul id="notes">{notes}</ul>' if notes else ""
     counts = "".join(f"<tr><td>{esc(k)}</td><td>{esc(json.dumps(v) if isinstance(v, dict) else str(v))}</td></tr>"
                      for k, v in data["counts"].items())
     payload = json.dumps({k: data[k] for k in ("width", "height", "scale", "origin_x", "origin_y", "pieces", "source_width",
@@ -405,7 +410,7 @@ def render_html(data: dict) -> str:
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>polyvec: {esc(data["stem"])}</title><style>{_CSS}</style></head>
 <body><div id="side"><h1>polyvec · {esc(data["stem"])} <small>({w}×{h})</small></h1>
-<div><code>{esc(data["image"])}</code></div>
+<div><code>{esc(data["image"])}</code></div>{notes}
 <h2>layers</h2>{toggles}<div>{kp_types}</div>
 <div style="margin-top:6px"><button id="fit">fit</button> <button id="zin">zoom +</button>
 <button id="zout">zoom −</button> <small>wheel: zoom · drag: pan</small></div>

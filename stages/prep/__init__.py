@@ -94,10 +94,11 @@ class CropConfig:
     max_speck_px: int
     page_edge_fraction: float
     sheet_rim_share: float
+    sheet_min_contrast: float
 
     def __post_init__(self) -> None:
-        if not 0 < self.sheet_rim_share <= 1:
-            raise InputError("prep.crop: need 0 < sheet_rim_share ≤ 1")
+        if not 0 < self.sheet_rim_share <= 1 or not 0 < self.sheet_min_contrast <= 1:
+            raise InputError("prep.crop: need 0 < sheet_rim_share ≤ 1 and 0 < sheet_min_contrast ≤ 1")
         if self.margin_px < 0 or not 0 < self.max_area_fraction <= 1:
             raise InputError("prep.crop: need margin_px ≥ 0 and 0 < max_area_fraction ≤ 1")
         if (self.cluster_gap_px < 1 or not 0 <= self.min_cluster_share <= 1 or self.max_speck_px < 0

@@ -10,7 +10,8 @@ Choices made on purpose
   a negative scan, which the threshold would otherwise read as a page of ink ("no ink stands out of
   the paper grain"); the grey is turned into ``1 − grey`` and a note says so. Why mid-grey: the paper
   of every validation, realvec_dev and bundled drawing is at 0.82 or lighter, and a page darker than
-  mid-grey has more ink than paper, which is no line drawing either way.
+  mid-grey has more ink than paper, which is no line drawing either way.  A photographed sheet is cut
+  out of its desk first (below), and the level is its paper's.
 * **Alpha** is composited over white (the authors' detector ignores alpha, which their issue #7
   traces to blank predictions on transparent PNGs) — over black when the opaque strokes on a mostly
   transparent page are lighter than mid-grey (white line art for a dark background), which the
@@ -96,15 +97,20 @@ Choices made on purpose
   page, not the ink (the elephant and the kitten on an A4 sheet: 33 s and 1.7 GB, against 14 s for
   the two alone); the field, the graph and the topology see the same disjoint strokes, and the
   keypoint network runs on each piece alone (:func:`~stages.prep.piece_windows`).
-* **A photographed sheet is cut out of the ground round it** (``crop.sheet_rim_share``; issue #14, not
-  in the references).  Before the lighting is flattened, the largest bright region of 16-px cells'
-  medians (holes filled) is the sheet when darker cells run along at least ``sheet_rim_share`` (0.75)
-  of the image's border; the later steps, the crop's box included, work on its box, one cell inside
-  it, and ``origin``/``pieces`` are moved by its corner.  Why: divided by its own brightness, the desk
+* **A photographed sheet is cut out of the ground round it** (``crop.sheet_rim_share``,
+  ``crop.sheet_min_contrast``; issue #14, not in the references).  First of all, before the inversion
+  and the lighting, the largest bright region of 16-px cells' means (holes filled) is the sheet when
+  solid darker ground (48 px and wider) runs along at least ``sheet_rim_share`` (0.4) of the image's
+  border, at least ``sheet_min_contrast`` (0.2) below the paper, the sheet's edge is a step (not
+  lighting's slope) and half its cells are plain paper; the later steps work on the box of the sheet less one cell, whatever its shape (turned, in
+  perspective, running off the photo), the ground inside the box painted with the nearest paper's grey,
+  and ``origin``/``pieces`` are moved by its corner.  Why: divided by its own brightness, the desk
   became speckle and the sheet's border a frame of band (``photo_desk.png``: 83 curves at 1/4
-  resolution, the border traced); the validation splits' and realvec_dev's images have at most 0.15
-  of their border darker, the banana tree's scan 0.24, a scan's dark strip down one side 0.3
-  (stages/DECISIONS.md).
+  resolution); a desk over half the photo made the paper level dark, so the photo was inverted (a
+  turned sheet: 31 curves, most of them across the paper); a turned sheet's corners of desk stayed in the box.  The
+  validation splits' drawings, and the same drawings inverted (chalk), have at most 0.2 of their border
+  solid and darker (the banana tree's scan: a shaded corner); none of them, and none of the same drawings
+  turned on a page lit from one corner, passes the four tests (stages/DECISIONS.md).
 * **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
   (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
   A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
@@ -135,6 +141,16 @@ SPARSE_INK_BLACK_PERCENTILE = 25.0
 PAGE_EDGE_BAND_PX = 64
 #: Side of the cells the crop looks at the page in (the ink's clusters, the photographed sheet): px.
 CELL_PX = 16
+#: A photographed sheet's ground is solid: its cells survive an opening by this many cells (48 px), which
+#: strokes and a scan's dark page edge do not.
+SHEET_SOLID_CELLS = 3
+#: ... and so is most of the sheet: at least this share of its cells are plain paper that survives the same
+#: opening (on an inverted drawing's dark paper the bright "region" is strokes, hatching and grain).
+SHEET_MIN_SOLID = 0.5
+#: ... and its edge a step: the median grey drop from a sheet cell to its neighbour outside is at least this
+#: share of the paper's contrast with the ground (turned sheets on desks: 0.43-0.67; lighting that darkens
+#: one side of a page, the same drawings without a desk: 0.01-0.10).
+SHEET_MIN_STEP = 0.25
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
@@ -449,19 +465,21 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     c = from_section(PrepConfig, cfg, "prep")
     grey, mode, decode_notes = decode_image(image_bytes, c.max_page_pixels)
     notes: list[str] = list(decode_notes)
+    source_shape, sheet = grey.shape, None
+    if c.crop.enabled and (found := _photographed_sheet(grey, c)) is not None:
+        # Before the inversion (a desk over half the photograph made its paper level dark) and the
+        # lighting (divided by its own brightness, the ground round the sheet became speckle).
+        grey, sheet, painted = found
+        y0, y1, x0, x1 = sheet
+        notes.append(f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} "
+                     f"box at ({x0}, {y0}){', the ground inside the box painted as paper' if painted else ''} "
+                     "(prep.crop; the curves are mapped back)")
     if c.invert != "never":
         level = paper_statistics(grey)[0]
         if c.invert == "always" or level < MID_GREY:
             grey = 1.0 - grey
             notes.append(f"light strokes on dark paper (paper level {level:.2f}): inverted (prep.invert)"
                          if c.invert == "auto" else "inverted (prep.invert=always)")
-    source_shape, sheet = grey.shape, None
-    if c.crop.enabled and (sheet := _sheet_box(grey, c)) is not None:
-        # Before the lighting: divided by its own brightness, the ground round the sheet became speckle.
-        y0, y1, x0, x1 = sheet
-        notes.append(f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} "
-                     f"box at ({x0}, {y0}) (prep.crop; the curves are mapped back)")
-        grey = grey[y0:y1, x0:x1]
     if c.lighting.enabled:
         lit, variation = flatten_lighting(grey, c.lighting.window_px, c.lighting.min_range)
         if lit is not grey:
@@ -485,7 +503,7 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
             grey, mask, band_data = _grey_and_band(grey[y0:y1, x0:x1], c)
             notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
-                         f"{x1 - x0}×{y1 - y0} box at ({x0}, {y0}){marks} (prep.crop; the curves are mapped back)")
+                         f"{x1 - x0}×{y1 - y0} box at ({x0 + sx}, {y0 + sy}){marks} (prep.crop; the curves are mapped back)")
         else:
             grey, mask, pieces, band_data = _mosaic(grey, boxes, c, (sx, sy))
             origin = None
@@ -573,15 +591,27 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
                         "band_smoothing": smoothing}
 
 
-def _sheet_box(grey: np.ndarray, c: PrepConfig) -> tuple[int, int, int, int] | None:
-    """The box ``(y0, y1, x0, x1)`` of a sheet photographed on a darker ground (a desk), or None.
+def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tuple[int, int, int, int], bool] | None:
+    """A sheet photographed on a darker ground (a desk): its box's grey with the ground painted over, the
+    box ``(y0, y1, x0, x1)`` and whether any ground was inside it; None when the image is no such photo.
 
     On :data:`CELL_PX` cells' mean grey, the sheet is the largest 8-connected region of cells within
     ``max(min_contrast, half the range of the cells' 5th–90th percentiles)`` of the paper (the 90th
-    percentile), its holes (the drawing) filled.  It is a sheet on a ground only when the cells outside
-    it run along at least ``crop.sheet_rim_share`` of the image's border (a scan's dark page edge along
-    one side is 0.25–0.3 of it, and a drawing's strokes reaching the border far less).  The box is the
-    region's, one cell inside it (the sheet's shadowed rim).  Linear in the image.
+    percentile), its holes (the drawing) filled.  It is a sheet on a ground only when
+
+    - the ground is solid (cells surviving an opening by :data:`SHEET_SOLID_CELLS`, 48 px: strokes and a
+      scan's dark page edge are narrower) along at least ``crop.sheet_rim_share`` of the image's border
+      (a sheet running off the photograph on two sides leaves about half of it);
+    - the paper is at least ``crop.sheet_min_contrast`` brighter than the ground (the percentiles above);
+    - its edge is a step (:data:`SHEET_MIN_STEP`), not the slope of uneven lighting;
+    - at least :data:`SHEET_MIN_SOLID` of the sheet's cells are solid plain paper (bright cells whose grey
+      varies by at most ``contrast.min_contrast``; an inverted drawing's strokes, hatching and grain form
+      no such region).
+
+    The sheet less one cell all round (its shadowed rim) is kept, whatever its shape (turned, in
+    perspective, running off the photograph); the box is its bounding box, and the ground inside the box
+    takes the grey of the nearest bright cell of the sheet, so that later steps see paper there.  Linear
+    in the image.
     """
     cell = CELL_PX
     h, w = grey.shape
@@ -590,20 +620,61 @@ def _sheet_box(grey: np.ndarray, c: PrepConfig) -> tuple[int, int, int, int] | N
         return None
     # Cells' means (a median took 2.3 s on a 600-dpi A4 sheet): a stroke darkens its cells, which are
     # holes of the sheet, filled, unless they touch the image's border.
-    means = grey[:hc * cell, :wc * cell].reshape(hc, cell, wc, cell).mean(axis=(1, 3), dtype=np.float64)
+    cells = grey[:hc * cell, :wc * cell].reshape(hc, cell, wc, cell)
+    means = cells.mean(axis=(1, 3), dtype=np.float64)
     paper, ground = np.percentile(means, (90, 5))
+    if paper - ground < c.crop.sheet_min_contrast:
+        return None
     bright = means >= paper - max(c.contrast.min_contrast, 0.5 * (paper - ground))
     labels, n = ndimage.label(bright, structure=np.ones((3, 3)))
     if n == 0:
         return None
-    sheet = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
-    rim = np.concatenate([sheet[0], sheet[-1], sheet[:, 0], sheet[:, -1]])
-    if 1.0 - rim.mean() < c.crop.sheet_rim_share:
+    largest = labels == 1 + np.argmax(np.bincount(labels.ravel())[1:])
+    sheet = ndimage.binary_fill_holes(largest)
+    solid = np.ones((SHEET_SOLID_CELLS, SHEET_SOLID_CELLS), dtype=bool)
+    ground_cells = ndimage.binary_opening(~sheet, structure=solid)
+    rim = np.concatenate([ground_cells[0], ground_cells[-1], ground_cells[:, 0], ground_cells[:, -1]])
+    if rim.mean() < c.crop.sheet_rim_share:
         return None
-    rows, cols = np.flatnonzero(sheet.any(axis=1)), np.flatnonzero(sheet.any(axis=0))
-    y0, y1 = (rows[0] + 1) * cell, min(h, rows[-1] * cell)
-    x0, x1 = (cols[0] + 1) * cell, min(w, cols[-1] * cell)
-    return (int(y0), int(y1), int(x0), int(x1)) if y1 - y0 >= 8 * cell and x1 - x0 >= 8 * cell else None
+    # The sheet's edge is a step: across it, a cell of the sheet is much brighter than its neighbour
+    # outside (uneven lighting's slope changes the grey by a hundredth from cell to cell).
+    steps = []
+    for m, s in ((means, sheet), (means.T, sheet.T)):
+        steps += [(m[:-1] - m[1:])[s[:-1] & ~s[1:]], (m[1:] - m[:-1])[s[1:] & ~s[:-1]]]
+    steps = np.concatenate(steps)
+    if not steps.size or np.median(steps) < SHEET_MIN_STEP * (paper - ground):
+        return None
+    # Plain paper: bright cells whose grey varies less than ink stands out (hatching's cells do not).
+    # A band of cell rows at a time: a float64 square of a 600-dpi page would be 280 MB.
+    spread = np.empty_like(means)
+    for r in range(0, hc, 64):
+        band = cells[r:r + 64]
+        spread[r:r + 64] = np.sqrt(np.maximum(
+            np.square(band, dtype=np.float64).mean(axis=(1, 3)) - means[r:r + 64] ** 2, 0.0))
+    plain = largest & (spread <= c.contrast.min_contrast)
+    if ndimage.binary_opening(plain, structure=solid).sum() < SHEET_MIN_SOLID * sheet.sum():
+        return None
+    # One cell less all round, at the image's border too: a cell there may hold a sliver of desk between
+    # the sheet's edge and the border, with no ground cell beside it to show it.
+    inside = ndimage.binary_erosion(sheet, structure=np.ones((3, 3)))
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if len(rows) < 8 or len(cols) < 8:
+        return None
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    y0, y1, x0, x1 = r0 * cell, r1 * cell, c0 * cell, c1 * cell
+    box = grey[y0:y1, x0:x1]
+    off = ~inside[r0:r1, c0:c1]
+    if not off.any():
+        return box, (int(y0), int(y1), int(x0), int(x1)), False
+    # The ground inside the box (a turned sheet's corners) takes the nearest bright sheet cell's grey.
+    source = inside[r0:r1, c0:c1] & bright[r0:r1, c0:c1]
+    if not source.any():
+        return None
+    nearest = ndimage.distance_transform_edt(~source, return_distances=False, return_indices=True)
+    fill = means[r0:r1, c0:c1][nearest[0], nearest[1]]
+    painted = np.where(np.repeat(np.repeat(off, cell, axis=0), cell, axis=1),
+                       np.repeat(np.repeat(fill.astype(grey.dtype), cell, axis=0), cell, axis=1), box)
+    return painted, (int(y0), int(y1), int(x0), int(x1)), True
 
 
 def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, int]], int, bool] | None:

@@ -191,6 +191,36 @@ def test_a_drawing_on_a_large_page_is_vectorised_on_its_ink_and_comes_back_in_th
 
 
 @pytest.mark.slow
+def test_a_phone_photo_of_a_turned_sheet_is_vectorised_on_the_drawing(tmp_path, cli):
+    """A JPEG phone photo of a sketch on a sheet turned by 12°, the desk round it over most of the picture:
+    prep cuts the sheet out and paints the desk in its box as paper (said on the console; the desk made
+    the whole photo read as light strokes on dark paper before), and the curves lie on the sketch's
+    strokes, in the photo's pixels, and cover them: nothing on the desk or along the sheet's edges."""
+    import numpy as np
+    from PIL import Image
+    from scipy.ndimage import distance_transform_edt
+    from scipy.spatial import cKDTree
+
+    from photos import photographed
+
+    sheet = Image.new("L", (600, 800), 255)
+    sheet.paste(_ellipse_and_line(), (180, 300))
+    photo, ink = photographed(sheet, 12, (480, 640))
+    photo.save(tmp_path / "photo of my sketch.jpg", quality=88)
+    proc = cli("photo of my sketch.jpg", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "a sheet on a darker ground" in proc.stderr and "painted as paper" in proc.stderr, proc.stderr
+    assert "inverted" not in proc.stderr
+    curves = json.loads((tmp_path / "out" / "photo of my sketch.json").read_text())["curves"]
+    pts = np.concatenate([np.asarray(c["points"]) for c in curves])
+    assert 2 <= len(curves) <= 6
+    to_ink = distance_transform_edt(~ink)
+    assert to_ink[pts[:, 1].astype(int), pts[:, 0].astype(int)].max() <= 2
+    rows, cols = np.nonzero(ink)
+    assert cKDTree(pts).query(np.c_[cols + 0.5, rows + 0.5])[0].max() < 4
+
+
+@pytest.mark.slow
 def test_drawings_far_apart_on_a_page_are_vectorised_side_by_side_and_come_back_in_place(tmp_path, cli):
     """Two sketches in opposite corners of a sheet (issue #14): their common box keeps most of the page,
     so prep lays their boxes side by side (a mosaic, said on the console), and each one's curves come

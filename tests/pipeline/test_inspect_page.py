@@ -237,23 +237,24 @@ def _drawings_far_apart(path):
     img.save(path)
 
 
-@pytest.mark.parametrize("draw, size, scale, on_page, in_drawing, near", [
+@pytest.mark.parametrize("draw, size, scale, on_page, in_drawing, near, said", [
     # the ellipse's top at (120, 30.5) drawing px is at (240, 61) on the 2x page
-    (_thin_drawing, (240, 200), 2.0, (240, 61), (120.0, 30.5), 1.5),
+    (_thin_drawing, (240, 200), 2.0, (240, 61), (120.0, 30.5), 1.5, "working at 2x resolution"),
     # the ellipse's top at (500.5, 128) drawing px is at (125.125, 32) on the 1/4 page; the old page
     # divided its own size by the scale and saved edits for a 1004 x 804 drawing
-    (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0),
+    (_wide_drawing, (1001, 803), 0.25, (125.125, 32), (500.5, 128.0), 3.0, "working at 1/4 resolution"),
     # the ellipse's top at (720, 401) drawing px is at (152, 33) on the page of its ink's box from (568, 368)
-    (_drawing_on_a_sheet, (1200, 1000), 1.0, (152, 33), (720.0, 401.0), 1.5),
+    (_drawing_on_a_sheet, (1200, 1000), 1.0, (152, 33), (720.0, 401.0), 1.5, "box at (568, 368)"),
     # the ellipse's top at (1320, 1101) drawing px is at (152, 33) on the page of the mosaic; a page that
     # added its origin (0, 0) saved it there
-    (_drawings_far_apart, (1600, 1400), 1.0, (152, 33), (1320.0, 1101.0), 1.5),
+    (_drawings_far_apart, (1600, 1400), 1.0, (152, 33), (1320.0, 1101.0), 1.5, "2 parts far apart on the page"),
 ], ids=["supersampled", "downsampled", "cropped", "mosaic"])
 @needs_chromium
 def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path, draw, size, scale, on_page,
-                                                                        in_drawing, near):
+                                                                        in_drawing, near, said):
     """Thin strokes run at 2x (prep.supersample), wide ones at 1/4 (prep.downsample): the page shows
-    that resolution, the edits it saves are for the drawing, in its pixels, and the re-run takes them."""
+    that resolution, and says so in its side panel (as the console did: why the page is not the
+    drawing as it came); the edits it saves are for the drawing, in its pixels, and the re-run takes them."""
     pytest.importorskip("websocket", reason="websocket-client is not installed (the `test` extra)")
     from tests.pipeline.cdp import Browser
     draw(tmp_path / "drawing.png")
@@ -264,6 +265,7 @@ def test_page_of_a_resampled_drawing_saves_edits_in_the_drawings_pixels(tmp_path
     try:
         browser.open(page.resolve().as_uri())
         assert browser.eval("polyvecPage.data.scale") == scale
+        assert said in browser.eval("document.getElementById('notes').textContent")
         browser.eval(f"polyvecPage.points.push({{x: {on_page[0]}, y: {on_page[1]}, orig: 0, cur: 3}})")
         saved = browser.eval("polyvecPage.edits()")
     finally:

@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 import yaml
 from PIL import Image, ImageDraw
+from scipy import ndimage
 
 from pipeline.cli import REPO_CONF
 from stages import prep, synthetic
 from stages.errors import InputError
+
+from photos import photographed
 
 CFG = yaml.safe_load((REPO_CONF / "prep" / "default.yaml").read_text())
 
@@ -645,12 +648,67 @@ def test_a_photographed_sheet_is_cut_out_of_the_desk_round_it():
 
 
 def test_a_dark_edge_along_one_side_is_not_a_desk():
-    """A scan's dark strip down one side runs along a quarter of the border, not
+    """A scan's dark strip down one side, narrow or 120 px wide, runs along a quarter of the border, not
     ``crop.sheet_rim_share`` of it: no sheet is cut out (the page-edge rule handles it)."""
-    px = np.asarray(_sheet_with_drawing()).copy()
-    px[:, :40] = 60
-    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    for width in (40, 120):
+        px = np.asarray(_sheet_with_drawing()).copy()
+        px[:, :width] = 60
+        art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+        assert not any("darker ground" in n for n in art.notes), (width, art.notes)
+
+
+def test_lighting_that_darkens_one_side_of_a_page_is_not_a_desk():
+    """A page lit from one corner (paper from 0.95 down to 0.55): its darker side is solid, along half
+    the border, and 0.2 below the paper, as a desk is; but it darkens slowly, with no step at the
+    sheet's edge.  Taken for a desk, it was painted over with the strokes on it."""
+    px = np.asarray(_sheet_with_drawing(size=(1000, 1300), at=(150, 900))).astype(float)
+    yy, xx = np.mgrid[0:1300, 0:1000]
+    px *= 0.95 - 0.2 * xx / 1000 - 0.2 * yy / 1300
+    art = prep.run(CFG, _encode(Image.fromarray(px.astype(np.uint8), "L"), "PNG"))
     assert not any("darker ground" in n for n in art.notes), art.notes
+    drawing = np.asarray(_sheet_with_drawing(size=(1000, 1300), at=(150, 900))) < 128
+    assert (_page_mask(art) & drawing).sum() >= 0.95 * drawing.sum()
+
+
+@pytest.mark.parametrize("angle, centre", [(15, (500, 650)), (-8, (330, 420))])
+def test_a_turned_sheet_on_a_desk_over_most_of_the_photograph_is_cut_out(angle, centre):
+    """A phone photo: the sheet turned (15°), or turned and running off the photograph on two sides, on a
+    desk that covers most of it.  The desk made the paper level dark (the photo was inverted) and kept
+    the box whole; now the sheet is found before the inversion, the desk inside its box is painted as
+    paper, and the band is the drawing's alone, in the photograph's pixels."""
+    img, drawing = photographed(_sheet_with_drawing(size=(600, 800), at=(180, 280)), angle, centre)
+    art = prep.run(CFG, _encode(img, "PNG"))
+    assert any("a sheet on a darker ground" in n and "painted as paper" in n for n in art.notes), art.notes
+    assert not any("invert" in n for n in art.notes), art.notes
+    if centre != (500, 650):    # the sheet runs off the photograph at its top and left: its box starts there
+        sheet_line, = [n for n in art.notes if "darker ground" in n]
+        assert sheet_line.split("box at (")[1].startswith("16, 16)"), sheet_line
+    assert art.data["origin"] is not None and "pieces" not in art.data    # no piece of the desk beside it
+    page = _page_mask(art)
+    near = ndimage.binary_dilation(drawing, iterations=2)
+    assert (page & drawing).sum() >= 0.9 * drawing.sum() and (page & ~near).sum() <= 0.02 * drawing.sum()
+
+
+def test_a_drawing_on_a_photographed_sheet_is_cropped_in_the_photographs_pixels():
+    """The crop's console line gives the drawing's box in the photograph's pixels (it gave the sheet's)."""
+    img, drawing = _photographed_sheet()
+    notes = prep.run(CFG, _encode(img, "PNG")).notes
+    rows, cols = np.flatnonzero(drawing.any(axis=1)), np.flatnonzero(drawing.any(axis=0))
+    line, = [n for n in notes if "the drawing fills" in n]
+    x, y = (int(v) for v in line.split("box at (")[1].split(")")[0].split(", "))
+    assert 0 < cols[0] - x <= CFG["crop"]["margin_px"] + 16 and 0 < rows[0] - y <= CFG["crop"]["margin_px"] + 16, line
+
+
+def test_an_inverted_drawing_with_hatching_is_not_taken_for_a_photographed_sheet():
+    """Chalk on a blackboard with a densely hatched patch: a bright solid region on dark ground along the
+    whole border, as a sheet on a desk is, but its cells are not plain paper: the page is inverted and
+    kept whole."""
+    px = np.asarray(_sheet_with_drawing(size=(1000, 1000), at=(600, 600))).copy()
+    for x in range(150, 550, 6):
+        px[150:550, x:x + 3] = 0
+    art = prep.run(CFG, _encode(Image.fromarray(255 - px, "L"), "PNG"))
+    assert not any("darker ground" in n for n in art.notes), art.notes
+    assert any("inverted" in n for n in art.notes) and art.data["origin"] is None
 
 
 def test_two_drawings_far_apart_on_a_photographed_sheet_come_back_in_the_photographs_pixels():
