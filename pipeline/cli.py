@@ -59,7 +59,7 @@ runtime.cluster=sync|local|auto, runtime.scheduler_address=tcp://HOST:PORT.
 Exit status: 0 done, 1 some image failed, 2 usage error, 130 interrupted (re-run to resume).
 See also: polyvec-inspect, polyvec-bench, polyvec-train."""
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".avif", ".heic", ".heif"}
 EXAMPLE_NAME = "polyvec-example.png"
 REPO_CONF = CONF_DIR
 
@@ -128,7 +128,7 @@ def _resolve_one(spec: str) -> list[tuple[Path, Path]]:
     if p.is_dir():
         found = _images_under(p)
         if not found:
-            raise UsageError(f"no image files (png, jpg, tif, bmp) in folder {spec}")
+            raise UsageError(f"no image files (png, jpg, tif, bmp, webp, avif, heic) in folder {spec}")
         return [(q, q.relative_to(p).with_suffix("")) for q in found]
     if p.exists() or p.is_symlink():
         return [(p, Path(p.stem))]

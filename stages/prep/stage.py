@@ -102,15 +102,16 @@ Choices made on purpose
   and the lighting, the largest bright region of 16-px cells' means (holes filled) is the sheet when
   solid darker ground (48 px and wider) runs along at least ``sheet_rim_share`` (0.4) of the image's
   border, at least ``sheet_min_contrast`` (0.2) below the paper, the sheet's edge is a step (not
-  lighting's slope) and half its cells are plain paper; the later steps work on the box of the sheet less one cell, whatever its shape (turned, in
-  perspective, running off the photo), the ground inside the box painted with the nearest paper's grey,
-  and ``origin``/``pieces`` are moved by its corner.  Why: divided by its own brightness, the desk
-  became speckle and the sheet's border a frame of band (``photo_desk.png``: 83 curves at 1/4
-  resolution); a desk over half the photo made the paper level dark, so the photo was inverted (a
-  turned sheet: 31 curves, most of them across the paper); a turned sheet's corners of desk stayed in the box.  The
-  validation splits' drawings, and the same drawings inverted (chalk), have at most 0.2 of their border
-  solid and darker (the banana tree's scan: a shaded corner); none of them, and none of the same drawings
-  turned on a page lit from one corner, passes the four tests (stages/DECISIONS.md).
+  lighting's slope) and half its cells are plain paper; the later steps work on the box of the sheet
+  less one cell, whatever its shape (turned, in perspective, running off the photo), the ground inside
+  the box painted with the nearest paper's grey, and ``origin``/``pieces`` are moved by its corner.
+  Why: divided by its own brightness, the desk became speckle and the sheet's border a frame of band
+  (``photo_desk.png``: 83 curves at 1/4 resolution); a desk over half the photo made the paper level
+  dark, so the photo was inverted (a turned sheet: 31 curves, most of them across the paper); a turned
+  sheet's corners of desk stayed in the box.  The validation splits' drawings, and the same drawings
+  inverted (chalk), have at most 0.2 of their border solid and darker (the banana tree's scan: a shaded
+  corner); none of them, and none of the same drawings turned on a page lit from one corner, passes the
+  four tests (stages/DECISIONS.md).
 * **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
   (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
   A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
@@ -154,7 +155,8 @@ SHEET_MIN_STEP = 0.25
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
-    """Decode PNG/JPEG/TIFF/BMP bytes into grey levels over white, upright as a viewer shows them.
+    """Decode PNG/JPEG/TIFF/BMP/WebP/AVIF bytes (HEIC with ``pillow-heif``) into grey levels over white,
+    upright as a viewer shows them.
 
     An EXIF orientation (a phone photo, many scanners' JPEG and TIFF) is applied, as every image viewer
     and browser does: the curves then lie on the drawing the user sees, in its width and height. Of a
@@ -186,6 +188,8 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
 
     if len(image_bytes) == 0:
         raise InputError("empty file")
+    if _is_heif(image_bytes):
+        _register_heif()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
@@ -217,6 +221,32 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
 
         img = ImageOps.exif_transpose(img)
     return _to_grey(img), mode, notes
+
+
+#: ISO base media file brands of HEIF images (a phone's HEIC photo, HEIF stills and sequences); AVIF's
+#: ``avif``/``avis`` are Pillow's own.
+HEIF_BRANDS = {b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"hevm", b"hevs", b"mif1", b"msf1"}
+
+
+def _is_heif(data: bytes) -> bool:
+    """Whether ``data`` starts as a HEIF file: an ISO base media ``ftyp`` box of a HEIF brand."""
+    return len(data) >= 12 and data[4:8] == b"ftyp" and data[8:12] in HEIF_BRANDS
+
+
+def _register_heif() -> None:
+    """Let Pillow open HEIF (an iPhone's HEIC photos) through the optional ``pillow-heif``.
+
+    Raises
+    ------
+    InputError
+        ``pillow-heif`` is not installed: one line saying how to get it, or to export the photo.
+    """
+    try:
+        import pillow_heif
+    except ImportError:
+        raise InputError("a HEIC/HEIF photo: reading it needs the optional pillow-heif "
+                         "(pip install pillow-heif, or polyvec's [heic] extra), or export it as JPEG or PNG") from None
+    pillow_heif.register_heif_opener()
 
 
 def _to_grey(img) -> np.ndarray:
@@ -503,7 +533,8 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
             # (a drawing's ink under 0.5 % of the pixels stretched its paper texture into the band).
             grey, mask, band_data = _grey_and_band(grey[y0:y1, x0:x1], c)
             notes.append(f"the drawing fills {(y1 - y0) * (x1 - x0) / (h * w):.0%} of the page: working on its "
-                         f"{x1 - x0}×{y1 - y0} box at ({x0 + sx}, {y0 + sy}){marks} (prep.crop; the curves are mapped back)")
+                         f"{x1 - x0}×{y1 - y0} box at ({x0 + sx}, {y0 + sy}){marks} "
+                         "(prep.crop; the curves are mapped back)")
         else:
             grey, mask, pieces, band_data = _mosaic(grey, boxes, c, (sx, sy))
             origin = None

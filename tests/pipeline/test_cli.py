@@ -220,6 +220,19 @@ def test_a_phone_photo_of_a_turned_sheet_is_vectorised_on_the_drawing(tmp_path, 
     assert cKDTree(pts).query(np.c_[cols + 0.5, rows + 0.5])[0].max() < 4
 
 
+def test_a_folder_of_iphone_heic_photos_is_vectorised(tmp_path, cli):
+    """A folder as a phone's photos come off it (``IMG_0042.HEIC``, upper case): found and read through
+    pillow-heif (the folder was "no image files", a HEIC named alone "not an image")."""
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif is not installed (the `heic` extra)")
+    pillow_heif.register_heif_opener()
+    (tmp_path / "camera roll").mkdir()
+    _ellipse_and_line().convert("RGB").save(tmp_path / "camera roll" / "IMG_0042.HEIC", "HEIF", quality=90)
+    proc = cli("camera roll", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote out/IMG_0042.svg" in proc.stderr
+    assert json.loads((tmp_path / "out" / "IMG_0042.json").read_text())["curves"]
+
+
 @pytest.mark.slow
 def test_drawings_far_apart_on_a_page_are_vectorised_side_by_side_and_come_back_in_place(tmp_path, cli):
     """Two sketches in opposite corners of a sheet (issue #14): their common box keeps most of the page,

@@ -62,6 +62,30 @@ def test_every_input_kind_gives_the_same_band(drawing, kind):
     assert out["mask"].sum() > 100
 
 
+@pytest.mark.parametrize("fmt", ["HEIF", "AVIF", "WEBP"])
+def test_a_phones_heic_and_avif_and_webp_give_the_band_of_the_png(drawing, fmt):
+    """A phone's HEIC photo (through the optional pillow-heif), AVIF and WebP: the band of the same
+    drawing as a PNG, but for an edge pixel or two of the lossy codecs."""
+    if fmt == "HEIF":
+        pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif is not installed (the `heic` extra)")
+        pillow_heif.register_heif_opener()
+    g8 = np.round(drawing.grey * 255).astype(np.uint8)
+    data = _encode(Image.fromarray(np.stack([g8] * 3, -1), "RGB"), fmt, quality=95)
+    ref = prep.run(CFG, _variants(drawing.grey)["png-grey"])
+    out = prep.run(CFG, data)
+    assert np.sum(out["mask"] != ref["mask"]) <= 6
+
+
+def test_a_heic_photo_without_pillow_heif_is_one_line_saying_what_to_install(monkeypatch):
+    """Pillow reads no HEIC: without pillow-heif the error names it (it said "not an image")."""
+    import sys
+
+    heic = b"\x00\x00\x00\x1cftypheic" + bytes(100)
+    monkeypatch.setitem(sys.modules, "pillow_heif", None)      # as if not installed
+    with pytest.raises(InputError, match="HEIC/HEIF photo: reading it needs the optional pillow-heif"):
+        prep.run(CFG, heic)
+
+
 def test_alpha_is_composited_over_white(drawing):
     out = prep.run(CFG, _variants(drawing.grey)["png-rgba"])
     assert out["grey"][0, 0] == pytest.approx(1.0)  # transparent corner reads as paper
