@@ -344,7 +344,7 @@ def flatten_lighting(grey: np.ndarray, window_px: float, min_range: float) -> tu
         return grey, variation
     if f > 1:
         # back to full size: each block's value, smoothed over a block, the edge rows repeated
-        full = np.repeat(np.repeat(paper, fy, axis=0), fx, axis=1)
+        full = _blocks(paper, fy, fx)
         full = np.pad(full, ((0, h - full.shape[0]), (0, w - full.shape[1])), mode="edge")
         paper = ndimage.uniform_filter(full, (fy, fx))
     return np.clip(grey / np.maximum(paper, 1e-3), 0.0, 1.0), variation
@@ -495,12 +495,13 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     c = from_section(PrepConfig, cfg, "prep")
     grey, mode, decode_notes = decode_image(image_bytes, c.max_page_pixels)
     notes: list[str] = list(decode_notes)
-    source_shape, sheet = grey.shape, None
+    # A photographed sheet's corner in the photograph: every box below is the sheet's, moved by it.
+    source_shape, (sx, sy), origin = grey.shape, (0, 0), None
     if c.crop.enabled and (found := _photographed_sheet(grey, c)) is not None:
         # Before the inversion (a desk over half the photograph made its paper level dark) and the
         # lighting (divided by its own brightness, the ground round the sheet became speckle).
-        grey, sheet, painted = found
-        y0, y1, x0, x1 = sheet
+        grey, (y0, y1, x0, x1), painted = found
+        sx, sy, origin = x0, y0, [x0, y0]
         notes.append(f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} "
                      f"box at ({x0}, {y0}){', the ground inside the box painted as paper' if painted else ''} "
                      "(prep.crop; the curves are mapped back)")
@@ -517,9 +518,6 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
                          "(prep.lighting)")
         grey = lit
     h, w = grey.shape
-    # Boxes below are the sheet's: their corners in the photograph are moved by its corner.
-    sy, sx = (sheet[0], sheet[2]) if sheet is not None else (0, 0)
-    origin = None if sheet is None else [sx, sy]
     pieces = None
     if c.crop.enabled and (found := _ink_box(grey, c)) is not None:
         boxes, left_out, edge = found
@@ -703,8 +701,7 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tu
         return None
     nearest = ndimage.distance_transform_edt(~source, return_distances=False, return_indices=True)
     fill = means[r0:r1, c0:c1][nearest[0], nearest[1]]
-    painted = np.where(np.repeat(np.repeat(off, cell, axis=0), cell, axis=1),
-                       np.repeat(np.repeat(fill.astype(grey.dtype), cell, axis=0), cell, axis=1), box)
+    painted = np.where(_blocks(off, cell, cell), _blocks(fill.astype(grey.dtype), cell, cell), box)
     return painted, (int(y0), int(y1), int(x0), int(x1)), True
 
 
@@ -771,9 +768,9 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
     clusters, m = ndimage.label(near, structure=np.ones((3, 3)))
     cluster_ink = ndimage.sum_labels(counts, clusters, index=np.arange(1, m + 1))
     keep = cluster_ink >= crop.min_cluster_share * cluster_ink.max()
+    kept_cells = np.concatenate([[False], keep])[clusters]
     if not keep.all():
-        kept_cells = np.concatenate([[False], keep])[clusters]
-        padded &= np.repeat(np.repeat(kept_cells, cell, axis=0), cell, axis=1)
+        padded &= _blocks(kept_cells, cell, cell)
     rows, cols = np.flatnonzero(padded.any(axis=1)), np.flatnonzero(padded.any(axis=0))
     margin = crop.margin_px
     y0, y1 = max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)
@@ -782,8 +779,7 @@ def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, 
     if (y1 - y0) * (x1 - x0) > crop.max_area_fraction * h * w:
         # Parts of a drawing (or several drawings) far apart on the page: each kept cluster's box,
         # overlapping ones merged, when together they keep at most max_area_fraction of the page.
-        pixel_cluster = np.repeat(np.repeat(np.where(np.concatenate([[False], keep])[clusters], clusters, 0),
-                                            cell, axis=0), cell, axis=1) * padded
+        pixel_cluster = _blocks(np.where(kept_cells, clusters, 0), cell, cell) * padded
         boxes = _merged_boxes([(max(0, sl[0].start - margin), min(h, sl[0].stop + margin),
                                 max(0, sl[1].start - margin), min(w, sl[1].stop + margin))
                                for sl in ndimage.find_objects(pixel_cluster) if sl is not None])
@@ -862,6 +858,11 @@ def _mosaic(lit: np.ndarray, boxes: list[tuple[int, int, int, int]], c: PrepConf
     bands = [bd for _, _, _, bd in found]
     largest = max(range(len(found)), key=lambda i: found[i][2].sum())
     return grey, mask, pieces, dict(bands[largest], ink_fraction=float(mask.mean()), pieces_band=bands)
+
+
+def _blocks(cells: np.ndarray, fy: int, fx: int) -> np.ndarray:
+    """Each cell's value over its ``fy`` × ``fx`` block of pixels (a cell grid back at pixel size)."""
+    return np.repeat(np.repeat(cells, fy, axis=0), fx, axis=1)
 
 
 def _smoothed(grey: np.ndarray, sigma: float) -> np.ndarray:

@@ -641,17 +641,11 @@ def test_a_mosaic_is_not_made_when_the_pieces_would_keep_much_of_the_page():
     assert "pieces" not in art.data and art.data["origin"] is None and art["mask"].shape == (760, 650)
 
 
-def _photographed_sheet(seed=0):
-    """900×1200: a sheet (grey ~235, lit unevenly: 215 to 245 across) photographed on a darker desk
-    round it on every side (60 to 140 from corner to corner, noisy), ``_sheet_with_drawing``'s drawing
-    on it; and the drawing's ink."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:1200, 0:900]
-    px = 60 + 80 * (xx / 900 + yy / 1200) / 2 + rng.normal(0, 10, (1200, 900))
-    px[150:1050, 120:780] = np.linspace(215, 245, 660)[None, :] + rng.normal(0, 2, (900, 660))
-    drawing = np.asarray(_sheet_with_drawing(size=(900, 1200), at=(330, 450))) < 128
-    px[drawing] = 40
-    return Image.fromarray(np.clip(px, 0, 255).astype(np.uint8), "L"), drawing
+def _photographed_sheet():
+    """900×1200: a 660×900 sheet lit unevenly (204 to 242 across), photographed upright on a darker
+    desk round it on every side (``photos.photographed``), ``_sheet_with_drawing``'s drawing on it at
+    (330, 450) in the photograph; and the drawing's ink."""
+    return photographed(_sheet_with_drawing(size=(660, 900), at=(210, 300)), 0, (450, 600), size=(900, 1200))
 
 
 def test_a_photographed_sheet_is_cut_out_of_the_desk_round_it():
@@ -738,13 +732,9 @@ def test_an_inverted_drawing_with_hatching_is_not_taken_for_a_photographed_sheet
 def test_two_drawings_far_apart_on_a_photographed_sheet_come_back_in_the_photographs_pixels():
     """The sheet cut out of the desk, then its two drawings far apart laid side by side: each piece's
     corner in the photograph is its corner on the sheet moved by the sheet's."""
-    rng = np.random.default_rng(1)
-    yy, xx = np.mgrid[0:2000, 0:1600]
-    px = 60 + 80 * (xx / 1600 + yy / 2000) / 2 + rng.normal(0, 10, (2000, 1600))
-    px[80:1920, 50:1550] = 235 + rng.normal(0, 2, (1840, 1500))
-    drawing = np.asarray(_two_drawings_far_apart(size=(1600, 2000), second=(1000, 1450))) < 128
-    px[drawing] = 40
-    art = prep.run(CFG, _encode(Image.fromarray(np.clip(px, 0, 255).astype(np.uint8), "L"), "PNG"))
+    img, drawing = photographed(_two_drawings_far_apart(size=(1500, 1840), second=(950, 1370)), 0, (800, 1000),
+                                size=(1600, 2000))
+    art = prep.run(CFG, _encode(img, "PNG"))
     assert any("a sheet on a darker ground" in n for n in art.notes) and len(art.data["pieces"]) == 2, art.notes
     page = _page_mask(art)
     assert (page & drawing).sum() >= 0.95 * drawing.sum() and (page & ~drawing).sum() <= 0.05 * drawing.sum()
