@@ -14,7 +14,7 @@ import numpy as np
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "13"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "14"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
@@ -24,7 +24,8 @@ STAGE_VERSION = "13"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        marks far from the drawing (dust on a scanned sheet) and the page's dark edge do
 #                        not widen the crop; 12: parts far apart on a page are laid side by side (a mosaic),
 #                        a photographed sheet is cut out of the darker background round it; 13: it is
-#                        found before the inversion, turned or running off the photo, its box's desk painted
+#                        found before the inversion, turned or running off the photo, its box's desk painted;
+#                     14: a photographed sheet seen whole is flattened to its rectangle (prep.crop.sheet_flatten)
 
 
 @dataclass
@@ -96,6 +97,7 @@ class CropConfig:
     page_edge_fraction: float
     sheet_rim_share: float
     sheet_min_contrast: float
+    sheet_flatten: bool
 
     def __post_init__(self) -> None:
         if not 0 < self.sheet_rim_share <= 1 or not 0 < self.sheet_min_contrast <= 1:

@@ -112,6 +112,17 @@ Choices made on purpose
   inverted (chalk), have at most 0.2 of their border solid and darker (the banana tree's scan: a shaded
   corner); none of them, and none of the same drawings turned on a page lit from one corner, passes the
   four tests (stages/DECISIONS.md).
+* **A photographed sheet seen whole is flattened** (``crop.sheet_flatten``; not in the references).
+  When no cell of the sheet is on the photo's border and its edge is four straight sides, its corners
+  are found to under a pixel (lines through the edge's sub-pixel points, each the one most of its side's
+  points lie on), and the sheet is mapped through their homography onto a rectangle of its proportions
+  (the focal length from EXIF, else from the sides' vanishing points, else a phone's); the drawing is
+  that rectangle, upright, and the curves are in its pixels, not the photo's.  Why: a sketch
+  photographed at an angle came out in perspective and turned, which no artist wants to edit; on 24
+  validation drawings photographed leaning 10-40° back, flattened output scores better than the
+  photo-frame output even when that is un-warped with the true camera (stages/DECISIONS.md).  Choice:
+  the SVG is the flattened sheet's, not mapped back to the photo (scanner apps do the same), so that the
+  drawing's right angles and proportions are kept; ``sheet_flatten=false`` keeps the photo's pixels.
 * **Two size limits**: ``max_page_pixels`` (80 M) refuses to decode larger files; ``max_pixels``
   (16 M) bounds what the later stages work on, after the crop and resampling, since a sketch on an
   A4 sheet at 600 dpi (35 Mpx, refused before) is a box of ~1.6 Mpx, downsampled (stages/DECISIONS.md).
@@ -121,6 +132,7 @@ from __future__ import annotations
 
 import io
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -152,6 +164,26 @@ SHEET_MIN_SOLID = 0.5
 #: share of the paper's contrast with the ground (turned sheets on desks: 0.43-0.67; lighting that darkens
 #: one side of a page, the same drawings without a desk: 0.01-0.10).
 SHEET_MIN_STEP = 0.25
+#: A sheet seen whole is flattened when its edge is four straight sides: at least this share of the edge's
+#: points lie within :data:`SHEET_SIDE_TOLERANCE` of them (a torn or curled sheet is cut out as it is) ...
+SHEET_MIN_ON_SIDES = 0.9
+#: ... px, or 0.5 % of the sheet's diagonal when larger (the edge is found on the grey smoothed by 1.5 px).
+SHEET_SIDE_TOLERANCE = 2.0
+#: ... and its corners' angles lie within this many degrees of a right angle (a phone held at up to ~40°).
+SHEET_MAX_SKEW = 40.0
+#: A flattened sheet's proportions need the camera's focal length, in the photo's longer sides: one found
+#: from the sheet's corners outside this range is not trusted (vanishing points nearly at infinity) ...
+SHEET_FOCAL_RANGE = (0.3, 5.0)
+#: ... and this one is taken instead: a phone's main camera (24-28 mm equivalent on a 4:3 sensor: 0.7-0.8).
+SHEET_ASSUMED_FOCAL = 0.75
+#: mm: the diagonal of 35-mm film, which an EXIF focal length "in 35-mm film" is relative to.
+FILM_35MM_DIAGONAL = 43.27
+#: At most this many of the edge's hull vertices are searched for its largest quadrilateral (O(n³): 14 MB).
+SHEET_HULL_MAX = 120
+#: Lines tried through two of a side's edge points; the one most of them lie on (within 1 px) is fitted.
+SHEET_LINE_TRIES = 256
+#: px of the flattened sheet's rim left out of the work (its shadowed edge; its corners are found to ~1 px).
+SHEET_RIM_PX = 8
 
 
 def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
@@ -497,14 +529,13 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     notes: list[str] = list(decode_notes)
     # A photographed sheet's corner in the photograph: every box below is the sheet's, moved by it.
     source_shape, (sx, sy), origin = grey.shape, (0, 0), None
-    if c.crop.enabled and (found := _photographed_sheet(grey, c)) is not None:
+    sheet_corners = None
+    if c.crop.enabled and (found := _photographed_sheet(grey, c, _exif_focal(image_bytes))) is not None:
         # Before the inversion (a desk over half the photograph made its paper level dark) and the
         # lighting (divided by its own brightness, the ground round the sheet became speckle).
-        grey, (y0, y1, x0, x1), painted = found
-        sx, sy, origin = x0, y0, [x0, y0]
-        notes.append(f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} "
-                     f"box at ({x0}, {y0}){', the ground inside the box painted as paper' if painted else ''} "
-                     "(prep.crop; the curves are mapped back)")
+        grey, (sx, sy), source_shape, note, sheet_corners = found
+        origin = [sx, sy]
+        notes.append(note)
     if c.invert != "never":
         level = paper_statistics(grey)[0]
         if c.invert == "always" or level < MID_GREY:
@@ -579,7 +610,8 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     return Artifact(arrays={"grey": grey, "mask": mask},
                     data={"height": source_shape[0], "width": source_shape[1], "scale": scale, "origin": origin, **({"pieces": pieces} if pieces else {}),
                           "stroke_width": width,
-                          "mode": mode, **band_data}, notes=notes)
+                          "mode": mode, **({"sheet_corners": sheet_corners} if sheet_corners else {}), **band_data},
+                    notes=notes)
 
 
 def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -620,9 +652,22 @@ def _grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarr
                         "band_smoothing": smoothing}
 
 
-def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tuple[int, int, int, int], bool] | None:
-    """A sheet photographed on a darker ground (a desk): its box's grey with the ground painted over, the
-    box ``(y0, y1, x0, x1)`` and whether any ground was inside it; None when the image is no such photo.
+class _Sheet(NamedTuple):
+    """A photographed sheet as prep works on it: ``grey`` (the sheet flattened, or its box in the photo),
+    ``corner`` (x, y) of ``grey``'s corner in the drawing's pixels, ``shape`` (height, width) of the
+    drawing (the flattened sheet, or the photo), the console's line, and the flattened sheet's four
+    corners in the photo (None when it is cut out as it lies)."""
+
+    grey: np.ndarray
+    corner: tuple[int, int]
+    shape: tuple[int, int]
+    note: str
+    corners: list[list[float]] | None
+
+
+def _photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | None = None) -> _Sheet | None:
+    """A sheet photographed on a darker ground (a desk), flattened or cut out; None when the image is no
+    such photo.
 
     On :data:`CELL_PX` cells' mean grey, the sheet is the largest 8-connected region of cells within
     ``max(min_contrast, half the range of the cells' 5th–90th percentiles)`` of the paper (the 90th
@@ -637,10 +682,13 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tu
       varies by at most ``contrast.min_contrast``; an inverted drawing's strokes, hatching and grain form
       no such region).
 
-    The sheet less one cell all round (its shadowed rim) is kept, whatever its shape (turned, in
-    perspective, running off the photograph); the box is its bounding box, and the ground inside the box
-    takes the grey of the nearest bright cell of the sheet, so that later steps see paper there.  Linear
-    in the image.
+    A sheet seen whole (no cell of it on the image's border) whose edge is four straight sides
+    (:func:`_sheet_corners`) is flattened (``crop.sheet_flatten``): its quadrilateral is mapped onto a
+    rectangle of its proportions, the side nearest the photo's top on top, and the drawing is that
+    rectangle (:func:`_flattened`).  Otherwise the sheet less one cell all round (its shadowed rim)
+    is kept, whatever its shape (turned, in perspective, running off the photograph); the box is its
+    bounding box, and the ground inside the box takes the grey of the nearest bright cell of the sheet,
+    so that later steps see paper there.  Linear in the image.
     """
     cell = CELL_PX
     h, w = grey.shape
@@ -683,6 +731,16 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tu
     plain = largest & (spread <= c.contrast.min_contrast)
     if ndimage.binary_opening(plain, structure=solid).sum() < SHEET_MIN_SOLID * sheet.sum():
         return None
+    seen_whole = not (sheet[0].any() or sheet[-1].any() or sheet[:, 0].any() or sheet[:, -1].any())
+    if c.crop.sheet_flatten and seen_whole:
+        found = _sheet_corners(grey, sheet, cell, 0.5 * (paper + np.median(means[ground_cells])))
+        if found is not None:
+            corners = found[0]
+            flat, shape = _flattened(grey, *found, SHEET_RIM_PX, focal_35mm)
+            where = ", ".join(f"({x:.0f}, {y:.0f})" for x, y in corners)
+            return _Sheet(flat, (SHEET_RIM_PX, SHEET_RIM_PX), shape, corners=corners.round(2).tolist(), note=(
+                f"a sheet on a darker ground (a photograph): flattened from its corners {where} to a "
+                f"{shape[1]}×{shape[0]} rectangle, the curves in its pixels (prep.crop.sheet_flatten)"))
     # One cell less all round, at the image's border too: a cell there may hold a sliver of desk between
     # the sheet's edge and the border, with no ground cell beside it to show it.
     inside = ndimage.binary_erosion(sheet, structure=np.ones((3, 3)))
@@ -693,8 +751,9 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tu
     y0, y1, x0, x1 = r0 * cell, r1 * cell, c0 * cell, c1 * cell
     box = grey[y0:y1, x0:x1]
     off = ~inside[r0:r1, c0:c1]
+    line = f"a sheet on a darker ground (a photograph): working on the sheet, its {x1 - x0}×{y1 - y0} box at ({x0}, {y0})"
     if not off.any():
-        return box, (int(y0), int(y1), int(x0), int(x1)), False
+        return _Sheet(box, (int(x0), int(y0)), (h, w), f"{line} (prep.crop; the curves are mapped back)", None)
     # The ground inside the box (a turned sheet's corners) takes the nearest bright sheet cell's grey.
     source = inside[r0:r1, c0:c1] & bright[r0:r1, c0:c1]
     if not source.any():
@@ -702,7 +761,203 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, tu
     nearest = ndimage.distance_transform_edt(~source, return_distances=False, return_indices=True)
     fill = means[r0:r1, c0:c1][nearest[0], nearest[1]]
     painted = np.where(_blocks(off, cell, cell), _blocks(fill.astype(grey.dtype), cell, cell), box)
-    return painted, (int(y0), int(y1), int(x0), int(x1)), True
+    return _Sheet(painted, (int(x0), int(y0)), (h, w), f"{line}, the ground inside the box painted as paper "
+                  "(prep.crop; the curves are mapped back)", None)
+
+
+def _sheet_corners(grey: np.ndarray, sheet: np.ndarray, cell: int, level: float
+                   ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]] | None:
+    """The four corners (x, y) of a photographed sheet seen whole, float64 (4, 2), top-left, top-right,
+    bottom-right, bottom-left, with the sheet's pixels (bool, a box of the photo) and that box's corner
+    (x, y); None when its edge is not four straight sides.
+
+    ``sheet`` is its cells (:func:`_photographed_sheet`), ``level`` the grey halfway between the paper
+    and the ground.  On the grey round the sheet smoothed by 1.5 px, the sheet is the region brighter
+    than ``level`` that holds its inner cells (holes filled); its edge's points are where the grey crosses
+    ``level`` between two neighbours (sub-pixel).  The largest quadrilateral on the points' convex hull
+    gives the four sides; each side's line is then the one through two of the points near its middle
+    80 % that most of them lie on (within 1 px; :data:`SHEET_LINE_TRIES`), fitted to those (total least
+    squares), and the corners are where the lines meet.
+    The sheet is flattened only when :data:`SHEET_MIN_ON_SIDES` of the edge lies on the sides and the
+    corners are within :data:`SHEET_MAX_SKEW` of square.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    h, w = grey.shape
+    rows, cols = np.flatnonzero(sheet.any(axis=1)), np.flatnonzero(sheet.any(axis=0))
+    y0, y1 = (rows[0] - 1) * cell, min(h, (rows[-1] + 2) * cell)
+    x0, x1 = (cols[0] - 1) * cell, min(w, (cols[-1] + 2) * cell)
+    g = _smoothed(grey[y0:y1, x0:x1].astype(np.float32), 1.5)
+    above = g > level
+    labels, n = ndimage.label(above)
+    inner = _blocks(ndimage.binary_erosion(sheet, structure=np.ones((3, 3))), cell, cell)[y0:y1, x0:x1]
+    held = np.bincount(labels[inner[:g.shape[0], :g.shape[1]] & above], minlength=n + 1)
+    held[0] = 0
+    if held.max() == 0:
+        return None
+    region = ndimage.binary_fill_holes(labels == np.argmax(held))
+    # Sub-pixel edge points: between a pixel of the region and its neighbour off it, where the grey
+    # crosses the level (linearly).
+    points = []
+    for axis, step in ((0, 1), (0, -1), (1, 1), (1, -1)):
+        here, there = [slice(None), slice(None)], [slice(None), slice(None)]
+        here[axis], there[axis] = ((slice(None, -1), slice(1, None)) if step == 1
+                                   else (slice(1, None), slice(None, -1)))
+        here, there = tuple(here), tuple(there)
+        edge = region[here] & ~region[there]
+        ga, gb = g[here][edge], g[there][edge]
+        yy, xx = np.nonzero(edge)
+        if step == -1:
+            yy, xx = (yy + 1, xx) if axis == 0 else (yy, xx + 1)
+        t = step * np.clip((ga - level) / np.maximum(ga - gb, 1e-6), 0.0, 1.0)
+        points.append(np.c_[xx + (t if axis == 1 else 0), yy + (t if axis == 0 else 0)])
+    points = np.concatenate(points) + [x0, y0]
+    try:
+        hull = points[ConvexHull(points).vertices]
+    except QhullError:
+        return None
+    if len(hull) > SHEET_HULL_MAX:     # the largest quadrilateral is found among these in O(n³)
+        hull = hull[np.linspace(0, len(hull), SHEET_HULL_MAX, endpoint=False).astype(int)]
+    # The largest quadrilateral with corners on the hull: for each diagonal (i, k), the farthest vertex
+    # on either side of it.
+    d = hull[None] - hull[:, None]                                # d[i, k] = hull[k] − hull[i]
+    cross = d[:, :, None, 0] * d[:, None, :, 1] - d[:, :, None, 1] * d[:, None, :, 0]
+    i, k = np.unravel_index(np.argmax(cross.max(axis=2) - cross.min(axis=2)), cross.shape[:2])
+    quad = hull[[i, np.argmax(cross[i, k]), k, np.argmin(cross[i, k])]]
+    diagonal = float(np.hypot(x1 - x0, y1 - y0))
+    tolerance = max(SHEET_SIDE_TOLERANCE, 0.005 * diagonal)
+    lines = []
+    rng = np.random.default_rng(0)      # the same corners for the same photo
+    for side in range(4):
+        a, b = quad[side], quad[(side + 1) % 4]
+        length = float(np.hypot(*(b - a)))
+        if length < 4 * cell:
+            return None
+        u = (b - a) / length
+        along, off = (points - a) @ u / length, np.abs((points - a) @ np.array([-u[1], u[0]]))
+        near = points[(along > 0.1) & (along < 0.9) & (off < max(4 * tolerance, 0.2 * length))]
+        if len(near) < 2 * cell:
+            return None
+        # The line through two of them that most of them lie on (a torn corner or a finger on the edge
+        # bends the hull's quadrilateral there: a least-squares start would follow it) ...
+        pairs = rng.integers(0, len(near), (SHEET_LINE_TRIES, 2))
+        along_pair = near[pairs[:, 1]] - near[pairs[:, 0]]
+        normal = (np.c_[-along_pair[:, 1], along_pair[:, 0]]
+                  / np.maximum(np.hypot(along_pair[:, 0], along_pair[:, 1]), 1e-9)[:, None])
+        on = np.abs(((near[None] - near[pairs[:, 0]][:, None]) * normal[:, None]).sum(axis=2)) <= 1.0
+        near = near[on[np.argmax(on.sum(axis=1))]]
+        # ... then fitted to them (total least squares).
+        centre = near.mean(axis=0)
+        normal = np.linalg.svd(near - centre, full_matrices=False)[2][1]
+        lines.append((normal, float(normal @ centre)))
+    corners = np.array([np.linalg.solve(np.array([lines[s - 1][0], lines[s][0]]), [lines[s - 1][1], lines[s][1]])
+                        for s in range(4)])
+    # Distance of every edge point to the nearest side.
+    dist = np.full(len(points), np.inf)
+    for s in range(4):
+        a, b = corners[s], corners[(s + 1) % 4]
+        t = np.clip((points - a) @ (b - a) / float((b - a) @ (b - a)), 0.0, 1.0)
+        dist = np.minimum(dist, np.hypot(*(points - a - t[:, None] * (b - a)).T))
+    if np.mean(dist <= tolerance) < SHEET_MIN_ON_SIDES:
+        return None
+    sides = np.roll(corners, -1, axis=0) - corners
+    cosines = [float(-sides[s - 1] @ sides[s]) / (np.hypot(*sides[s - 1]) * np.hypot(*sides[s])) for s in range(4)]
+    if max(abs(np.degrees(np.arcsin(np.clip(cos, -1, 1)))) for cos in cosines) > SHEET_MAX_SKEW:
+        return None
+    # Top-left first, going round as the photo's top left → top right: the order whose first side points
+    # most nearly along +x.
+    if sides[0, 0] * sides[1, 1] - sides[0, 1] * sides[1, 0] < 0:
+        corners = corners[::-1]
+        sides = np.roll(corners, -1, axis=0) - corners
+    first = int(np.argmax(sides[:, 0] / np.hypot(sides[:, 0], sides[:, 1])))
+    return np.roll(corners, -first, axis=0), region, (int(x0), int(y0))
+
+
+def _flattened(grey: np.ndarray, corners: np.ndarray, region: np.ndarray, corner: tuple[int, int], rim: int,
+               focal_35mm: float | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """The sheet whose ``corners`` (top-left, top-right, bottom-right, bottom-left; (x, y) in the photo)
+    are given, mapped onto a rectangle of the sheet's proportions (:func:`_sheet_aspect`) and of the
+    quadrilateral's area (bilinear, through the homography of the four corners), less ``rim`` px all
+    round; and the rectangle's (height, width).  The corners are the rectangle's outer pixel corners.
+    What lies off the sheet's pixels ``region`` (a box of the photo at ``corner``) inside the rectangle
+    (a torn or folded corner, a finger on the edge) takes the grey of the nearest pixel on it.
+    ``focal_35mm``: the photo's EXIF focal length (:func:`_sheet_aspect`)."""
+    from skimage.transform import ProjectiveTransform, warp
+
+    aspect = _sheet_aspect(corners, grey.shape, focal_35mm)
+    xs, ys = corners.T
+    area = 0.5 * abs(float(xs @ np.roll(ys, -1) - ys @ np.roll(xs, -1)))
+    height = int(round(np.sqrt(area / aspect)))
+    width = int(round(height * aspect))
+    rect = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64) - 0.5
+    # The homography from the rectangle to the photo (8 unknowns, 4 point pairs).
+    rows = []
+    for (u, v), (x, y) in zip(rect, corners):
+        rows += [[u, v, 1, 0, 0, 0, -u * x, -v * x], [0, 0, 0, u, v, 1, -u * y, -v * y]]
+    hom = np.append(np.linalg.solve(np.array(rows), corners.ravel()), 1.0).reshape(3, 3)
+    # Output pixel (c, r) is the rectangle's (c + rim, r + rim).
+    shift = np.array([[1.0, 0, rim], [0, 1.0, rim], [0, 0, 1.0]])
+    out = (height - 2 * rim, width - 2 * rim)
+    flat = warp(grey, ProjectiveTransform(matrix=hom @ shift), output_shape=out, order=1, mode="edge",
+                preserve_range=True).astype(grey.dtype)
+    # The sheet's pixels less 2 px (the darker rim of its edge), in the rectangle.
+    inside = ndimage.binary_erosion(region, iterations=2).astype(np.float32)
+    box = np.array([[1.0, 0, -corner[0]], [0, 1.0, -corner[1]], [0, 0, 1.0]])
+    on = warp(inside, ProjectiveTransform(matrix=box @ hom @ shift), output_shape=out, order=1, cval=0.0) > 0.5
+    if on.any() and not on.all():
+        nearest = ndimage.distance_transform_edt(~on, return_distances=False, return_indices=True)
+        flat = flat[nearest[0], nearest[1]]
+    return flat, (height, width)
+
+
+def _sheet_aspect(corners: np.ndarray, shape: tuple[int, int], focal_35mm: float | None = None) -> float:
+    """Width over height of the rectangle photographed as the quadrilateral ``corners`` (top-left,
+    top-right, bottom-right, bottom-left) by a pinhole camera whose centre is the photo's.
+
+    The rectangle's proportions follow from its sides' directions in the camera's frame, which need the
+    focal length: the photo's EXIF one (``focal_35mm``, in 35-mm film terms), else the one the sides'
+    two vanishing points give (Zhang and He 2007, whiteboard scanning), when it is in
+    :data:`SHEET_FOCAL_RANGE` and moving any corner by half a pixel moves it by under 10 % (a sheet
+    seen head-on, or only leaned back, has sides parallel in the photo: its vanishing points are at
+    infinity), else a phone's, :data:`SHEET_ASSUMED_FOCAL`.  Seen nearly head-on, the proportions hardly
+    depend on it.
+    """
+    centre = np.array([0.5 * (shape[1] - 1), 0.5 * (shape[0] - 1)])
+    longer = float(max(shape))
+
+    def normals(quad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m1, m2, m4, m3 = (np.append(p - centre, 1.0) for p in quad)     # Zhang's m1, m2 top; m3, m4 bottom
+        k2 = np.cross(m1, m4) @ m3 / (np.cross(m2, m4) @ m3)
+        k3 = np.cross(m1, m4) @ m2 / (np.cross(m3, m4) @ m2)
+        return k2 * m2 - m1, k3 * m3 - m1
+
+    def focal2(quad: np.ndarray) -> float:
+        n2, n3 = normals(quad)
+        return -(n2[0] * n3[0] + n2[1] * n3[1]) / (n2[2] * n3[2]) if abs(n2[2] * n3[2]) > 1e-12 else -1.0
+
+    if focal_35mm:
+        f2 = (focal_35mm / FILM_35MM_DIAGONAL * float(np.hypot(*shape))) ** 2
+    else:
+        f2 = focal2(corners)
+        low, high = SHEET_FOCAL_RANGE
+        moved = [focal2(corners + np.eye(8)[i].reshape(4, 2) * step) for i in range(8) for step in (-0.5, 0.5)]
+        if not ((low * longer) ** 2 <= f2 <= (high * longer) ** 2
+                and all(0.81 * f2 <= f <= 1.21 * f2 for f in moved)):
+            f2 = (SHEET_ASSUMED_FOCAL * longer) ** 2
+    n2, n3 = normals(corners)
+    inv = np.array([1 / f2, 1 / f2, 1.0])
+    return float(np.sqrt((n2 * n2) @ inv / ((n3 * n3) @ inv)))
+
+
+def _exif_focal(image_bytes: bytes) -> float | None:
+    """The photo's focal length in 35-mm film terms (EXIF ``FocalLengthIn35mmFilm``), mm, or None."""
+    from PIL import Image
+
+    try:
+        value = Image.open(io.BytesIO(image_bytes)).getexif().get_ifd(0x8769).get(0xA405)
+        return float(value) if value and float(value) > 0 else None
+    except Exception:   # EXIF is a hint: a broken block is no reason to fail
+        return None
 
 
 def _ink_box(lit: np.ndarray, c: PrepConfig) -> tuple[list[tuple[int, int, int, int]], int, bool] | None:
