@@ -682,7 +682,8 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | Non
       varies by at most ``contrast.min_contrast``; an inverted drawing's strokes, hatching and grain form
       no such region).
 
-    A sheet seen whole (no cell of it on the image's border) whose edge is four straight sides
+    A sheet seen whole (no cell of it on the image's border, once the ground's opening has cut off any
+    lighter patches of desk joined to it by narrow bridges) whose edge is four straight sides
     (:func:`_sheet_corners`) is flattened (``crop.sheet_flatten``): its quadrilateral is mapped onto a
     rectangle of its proportions, the side nearest the photo's top on top, and the drawing is that
     rectangle (:func:`_flattened`).  Otherwise the sheet less one cell all round (its shadowed rim)
@@ -731,9 +732,18 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | Non
     plain = largest & (spread <= c.contrast.min_contrast)
     if ndimage.binary_opening(plain, structure=solid).sum() < SHEET_MIN_SOLID * sheet.sum():
         return None
-    seen_whole = not (sheet[0].any() or sheet[-1].any() or sheet[:, 0].any() or sheet[:, -1].any())
-    if c.crop.sheet_flatten and seen_whole:
-        found = _sheet_corners(grey, sheet, cell, 0.5 * (paper + np.median(means[ground_cells])))
+    def seen_whole(cells: np.ndarray) -> bool:
+        return cells.any() and not (cells[0].any() or cells[-1].any() or cells[:, 0].any() or cells[:, -1].any())
+
+    whole = sheet
+    if not seen_whole(sheet):
+        # Bright patches of a lighter desk can join the sheet's cells by narrow bridges and run it off
+        # the photo: the sheet without them (the largest region left by the ground's opening).
+        labels, n = ndimage.label(ndimage.binary_opening(sheet, structure=solid), structure=np.ones((3, 3)))
+        if n:
+            whole = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
+    if c.crop.sheet_flatten and seen_whole(whole):
+        found = _sheet_corners(grey, whole, cell, 0.5 * (paper + np.median(means[ground_cells])))
         if found is not None:
             corners = found[0]
             flat, shape = _flattened(grey, *found, SHEET_RIM_PX, focal_35mm)
@@ -773,7 +783,7 @@ def _sheet_corners(grey: np.ndarray, sheet: np.ndarray, cell: int, level: float
 
     ``sheet`` is its cells (:func:`_photographed_sheet`), ``level`` the grey halfway between the paper
     and the ground.  On the grey round the sheet smoothed by 1.5 px, the sheet is the region brighter
-    than ``level`` that holds its inner cells (holes filled); its edge's points are where the grey crosses
+    than ``level``, within a cell of its cells, that holds its inner cells (holes filled); its edge's points are where the grey crosses
     ``level`` between two neighbours (sub-pixel).  The largest quadrilateral on the points' convex hull
     gives the four sides; each side's line is then the one through two of the points near its middle
     80 % that most of them lie on (within 1 px; :data:`SHEET_LINE_TRIES`), fitted to those (total least
@@ -788,7 +798,8 @@ def _sheet_corners(grey: np.ndarray, sheet: np.ndarray, cell: int, level: float
     y0, y1 = (rows[0] - 1) * cell, min(h, (rows[-1] + 2) * cell)
     x0, x1 = (cols[0] - 1) * cell, min(w, (cols[-1] + 2) * cell)
     g = _smoothed(grey[y0:y1, x0:x1].astype(np.float32), 1.5)
-    above = g > level
+    # Within a cell of the sheet's cells: a lighter desk's bright patches beyond are not the sheet.
+    above = (g > level) & _blocks(ndimage.binary_dilation(sheet, structure=np.ones((3, 3))), cell, cell)[y0:y1, x0:x1]
     labels, n = ndimage.label(above)
     inner = _blocks(ndimage.binary_erosion(sheet, structure=np.ones((3, 3))), cell, cell)[y0:y1, x0:x1]
     held = np.bincount(labels[inner[:g.shape[0], :g.shape[1]] & above], minlength=n + 1)

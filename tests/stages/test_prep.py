@@ -798,6 +798,21 @@ def test_a_torn_corner_of_a_photographed_sheet_is_painted_as_paper():
             _on_the_ink(_page_mask(art), drawing, 0.9)
 
 
+def test_a_lighter_patch_of_desk_joining_the_sheet_does_not_run_it_off_the_photograph():
+    """A lighter desk (wood grain, a patch of light): a bright strip 40 px wide from the sheet's left edge
+    to the photograph's joins the sheet's cells, so the sheet seemed to run off the photo and was cut out
+    as it lay, its box out to the border.  The sheet less the strip (the ground's opening cuts it) is seen
+    whole: it is flattened to its own rectangle, the band on its ink."""
+    sheet = _sheet_with_drawing(size=(600, 800), at=(180, 280))
+    img, _ = photographed(sheet, 4, (500, 650))
+    px = np.asarray(img).copy()
+    px[500:540, :190] = 165          # up to the sheet's left edge (x ≈ 190 there)
+    art = prep.run(CFG, _encode(Image.fromarray(px, "L"), "PNG"))
+    assert any("flattened" in n for n in art.notes), art.notes
+    assert abs(art.data["height"] - 800) <= 3 and abs(art.data["width"] - 600) <= 3
+    _on_the_ink(_page_mask(art), _flat_ink(sheet, art), 0.9)
+
+
 def test_a_drawing_on_a_photographed_sheet_is_cropped_in_the_sheets_pixels():
     """The crop's console line gives the drawing's box on the flattened sheet (it gave the sheet's)."""
     img, _, sheet = _photographed_sheet()
