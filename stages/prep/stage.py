@@ -732,17 +732,7 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | Non
     plain = largest & (spread <= c.contrast.min_contrast)
     if ndimage.binary_opening(plain, structure=solid).sum() < SHEET_MIN_SOLID * sheet.sum():
         return None
-    def seen_whole(cells: np.ndarray) -> bool:
-        return cells.any() and not (cells[0].any() or cells[-1].any() or cells[:, 0].any() or cells[:, -1].any())
-
-    whole = sheet
-    if not seen_whole(sheet):
-        # Bright patches of a lighter desk can join the sheet's cells by narrow bridges and run it off
-        # the photo: the sheet without them (the largest region left by the ground's opening).
-        labels, n = ndimage.label(ndimage.binary_opening(sheet, structure=solid), structure=np.ones((3, 3)))
-        if n:
-            whole = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
-    if c.crop.sheet_flatten and seen_whole(whole):
+    if c.crop.sheet_flatten and (whole := _seen_whole(sheet, solid)) is not None:
         found = _sheet_corners(grey, whole, cell, 0.5 * (paper + np.median(means[ground_cells])))
         if found is not None:
             corners = found[0]
@@ -773,6 +763,23 @@ def _photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | Non
     painted = np.where(_blocks(off, cell, cell), _blocks(fill.astype(grey.dtype), cell, cell), box)
     return _Sheet(painted, (int(x0), int(y0)), (h, w), f"{line}, the ground inside the box painted as paper "
                   "(prep.crop; the curves are mapped back)", None)
+
+
+def _seen_whole(sheet: np.ndarray, solid: np.ndarray) -> np.ndarray | None:
+    """A photographed sheet's cells when none of them is on the image's border, else None.  Bright
+    patches of a lighter desk can join the sheet by narrow bridges and run it off the photo: a sheet
+    found on the border is taken again without them (the largest region the ground's opening by
+    ``solid`` leaves, holes filled)."""
+    def on_border(cells: np.ndarray) -> bool:
+        return bool(cells[0].any() or cells[-1].any() or cells[:, 0].any() or cells[:, -1].any())
+
+    if not on_border(sheet):
+        return sheet
+    labels, n = ndimage.label(ndimage.binary_opening(sheet, structure=solid), structure=np.ones((3, 3)))
+    if n == 0:
+        return None
+    whole = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
+    return None if on_border(whole) else whole
 
 
 def _sheet_corners(grey: np.ndarray, sheet: np.ndarray, cell: int, level: float
