@@ -23,12 +23,11 @@ def photographed(sheet: Image.Image, angle: float, centre: tuple[int, int], size
     rng = np.random.default_rng(seed)
     w, h = size
     if tilt:
-        coeffs = camera_coefficients(sheet.size, angle, tilt, centre, size)
-        alpha = Image.new("L", sheet.size, 255).transform(size, Image.PERSPECTIVE, coeffs, Image.BILINEAR, fillcolor=0)
+        coeffs = _camera_coefficients(sheet.size, angle, tilt, centre, size)
+        a = Image.new("L", sheet.size, 255).transform(size, Image.PERSPECTIVE, coeffs, Image.BILINEAR, fillcolor=0)
         photo = sheet.transform(size, Image.PERSPECTIVE, coeffs, Image.BILINEAR, fillcolor=255)
         ink = Image.fromarray((np.asarray(sheet) < 128).astype(np.uint8) * 255)
         drawing = ink.transform(size, Image.PERSPECTIVE, coeffs, Image.NEAREST, fillcolor=0)
-        a = alpha
     else:
         turned = sheet.rotate(angle, resample=Image.BILINEAR, expand=True, fillcolor=255)
         alpha = Image.new("L", sheet.size, 255).rotate(angle, resample=Image.BILINEAR, expand=True, fillcolor=0)
@@ -60,7 +59,7 @@ def sheet_to_photo(sheet_size: tuple[int, int], angle: float, tilt: float, centr
     return k @ plane @ np.array([[1, 0, -0.5 * sw], [0, 1, -0.5 * sh], [0, 0, 1]])
 
 
-def camera_coefficients(sheet_size, angle, tilt, centre, size) -> tuple[float, ...]:
+def _camera_coefficients(sheet_size, angle, tilt, centre, size) -> tuple[float, ...]:
     """PIL's ``PERSPECTIVE`` coefficients (photo → sheet) of :func:`sheet_to_photo`."""
     inv = np.linalg.inv(sheet_to_photo(sheet_size, angle, tilt, centre, size))
     return tuple((inv / inv[2, 2]).ravel()[:8])
