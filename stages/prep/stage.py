@@ -186,7 +186,7 @@ SHEET_LINE_TRIES = 256
 SHEET_RIM_PX = 8
 
 
-def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str]]:
+def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, list[str], float | None]:
     """Decode PNG/JPEG/TIFF/BMP/WebP/AVIF bytes (HEIC with ``pillow-heif``) into grey levels over white,
     upright as a viewer shows them.
 
@@ -210,6 +210,9 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
         The source image mode (e.g. ``"RGBA"``, ``"I;16"``).
     notes : list of str
         One line per thing the user should know (pages left out).
+    focal_35mm : float or None
+        The photo's focal length in 35-mm film terms (EXIF ``FocalLengthIn35mmFilm``, mm), for a
+        photographed sheet's proportions (:func:`_sheet_aspect`); None when the file has none.
 
     Raises
     ------
@@ -248,11 +251,13 @@ def decode_image(image_bytes: bytes, max_pixels: int) -> tuple[np.ndarray, str, 
     pages = getattr(img, "n_frames", 1)
     if pages > 1:
         notes.append(f"{pages} pages (frames) in the file: the first is vectorised")
-    if img.getexif().get(0x0112, 1) != 1:   # EXIF Orientation: 1 = upright as stored
+    exif = img.getexif()
+    focal = _exif_focal(exif)
+    if exif.get(0x0112, 1) != 1:   # EXIF Orientation: 1 = upright as stored
         from PIL import ImageOps
 
         img = ImageOps.exif_transpose(img)
-    return _to_grey(img), mode, notes
+    return _to_grey(img), mode, notes, focal
 
 
 #: ISO base media file brands of HEIF images (a phone's HEIC photo, HEIF stills and sequences); AVIF's
@@ -525,12 +530,12 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         ``grey`` float32 (H, W) and ``mask`` bool (H, W); see stages/INTERFACES.md.
     """
     c = from_section(PrepConfig, cfg, "prep")
-    grey, mode, decode_notes = decode_image(image_bytes, c.max_page_pixels)
+    grey, mode, decode_notes, focal_35mm = decode_image(image_bytes, c.max_page_pixels)
     notes: list[str] = list(decode_notes)
     # A photographed sheet's corner in the photograph: every box below is the sheet's, moved by it.
     source_shape, (sx, sy), origin = grey.shape, (0, 0), None
     sheet_corners = None
-    if c.crop.enabled and (found := _photographed_sheet(grey, c, _exif_focal(image_bytes))) is not None:
+    if c.crop.enabled and (found := _photographed_sheet(grey, c, focal_35mm)) is not None:
         # Before the inversion (a desk over half the photograph made its paper level dark) and the
         # lighting (divided by its own brightness, the ground round the sheet became speckle).
         grey, (sx, sy), source_shape, note, sheet_corners = found
@@ -800,16 +805,16 @@ def _sheet_corners(grey: np.ndarray, sheet: np.ndarray, cell: int, level: float
     """
     from scipy.spatial import ConvexHull, QhullError
 
-    h, w = grey.shape
+    # The sheet's cells and one more all round (none of them off the image: the sheet is seen whole).
     rows, cols = np.flatnonzero(sheet.any(axis=1)), np.flatnonzero(sheet.any(axis=0))
-    y0, y1 = (rows[0] - 1) * cell, min(h, (rows[-1] + 2) * cell)
-    x0, x1 = (cols[0] - 1) * cell, min(w, (cols[-1] + 2) * cell)
+    window = np.s_[rows[0] - 1:rows[-1] + 2, cols[0] - 1:cols[-1] + 2]
+    y0, y1, x0, x1 = (rows[0] - 1) * cell, (rows[-1] + 2) * cell, (cols[0] - 1) * cell, (cols[-1] + 2) * cell
     g = _smoothed(grey[y0:y1, x0:x1].astype(np.float32), 1.5)
     # Within a cell of the sheet's cells: a lighter desk's bright patches beyond are not the sheet.
-    above = (g > level) & _blocks(ndimage.binary_dilation(sheet, structure=np.ones((3, 3))), cell, cell)[y0:y1, x0:x1]
+    above = (g > level) & _blocks(ndimage.binary_dilation(sheet, structure=np.ones((3, 3)))[window], cell, cell)
     labels, n = ndimage.label(above)
-    inner = _blocks(ndimage.binary_erosion(sheet, structure=np.ones((3, 3))), cell, cell)[y0:y1, x0:x1]
-    held = np.bincount(labels[inner[:g.shape[0], :g.shape[1]] & above], minlength=n + 1)
+    inner = _blocks(ndimage.binary_erosion(sheet, structure=np.ones((3, 3)))[window], cell, cell)
+    held = np.bincount(labels[inner & above], minlength=n + 1)
     held[0] = 0
     if held.max() == 0:
         return None
@@ -949,30 +954,27 @@ def _sheet_aspect(corners: np.ndarray, shape: tuple[int, int], focal_35mm: float
         k3 = np.cross(m1, m4) @ m2 / (np.cross(m3, m4) @ m2)
         return k2 * m2 - m1, k3 * m3 - m1
 
-    def focal2(quad: np.ndarray) -> float:
-        n2, n3 = normals(quad)
+    def focal2(n2: np.ndarray, n3: np.ndarray) -> float:
         return -(n2[0] * n3[0] + n2[1] * n3[1]) / (n2[2] * n3[2]) if abs(n2[2] * n3[2]) > 1e-12 else -1.0
 
+    n2, n3 = normals(corners)
     if focal_35mm:
         f2 = (focal_35mm / FILM_35MM_DIAGONAL * float(np.hypot(*shape))) ** 2
     else:
-        f2 = focal2(corners)
+        f2 = focal2(n2, n3)
         low, high = SHEET_FOCAL_RANGE
-        moved = [focal2(corners + np.eye(8)[i].reshape(4, 2) * step) for i in range(8) for step in (-0.5, 0.5)]
+        moved = [focal2(*normals(corners + np.eye(8)[i].reshape(4, 2) * step)) for i in range(8) for step in (-0.5, 0.5)]
         if not ((low * longer) ** 2 <= f2 <= (high * longer) ** 2
                 and all(0.81 * f2 <= f <= 1.21 * f2 for f in moved)):
             f2 = (SHEET_ASSUMED_FOCAL * longer) ** 2
-    n2, n3 = normals(corners)
     inv = np.array([1 / f2, 1 / f2, 1.0])
     return float(np.sqrt((n2 * n2) @ inv / ((n3 * n3) @ inv)))
 
 
-def _exif_focal(image_bytes: bytes) -> float | None:
-    """The photo's focal length in 35-mm film terms (EXIF ``FocalLengthIn35mmFilm``), mm, or None."""
-    from PIL import Image
-
+def _exif_focal(exif) -> float | None:
+    """The focal length in 35-mm film terms (``FocalLengthIn35mmFilm``, mm) of a Pillow ``Exif``, or None."""
     try:
-        value = Image.open(io.BytesIO(image_bytes)).getexif().get_ifd(0x8769).get(0xA405)
+        value = exif.get_ifd(0x8769).get(0xA405)
         return float(value) if value and float(value) > 0 else None
     except Exception:   # EXIF is a hint: a broken block is no reason to fail
         return None
