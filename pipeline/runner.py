@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pipeline import warmup
+from pipeline import kernels, warmup
 from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage, height
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
@@ -111,6 +111,7 @@ class RuntimeConfig:
     pages: bool
     debug: bool
     keypoints_process: bool
+    shipped_kernels: bool
 
     def __post_init__(self) -> None:
         if self.cluster not in ("auto", "local", "sync"):
@@ -602,7 +603,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         Defaults to ``ArtifactStore(cfg.store.path)``.
     on_compile : callable, optional
         Called once, before any work, when a stage with work to do has numba kernels that are not
-        compiled yet (a fresh install's first run, which takes longer).
+        compiled yet and none are shipped for this machine (:mod:`pipeline.kernels`): a first run
+        that takes longer.
 
     Returns
     -------
@@ -635,6 +637,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     if pending:
         todo = {t.stage for tasks in pending for t in tasks}
         sync = cluster_mode(runtime, pending) == "sync"
+        if runtime["shipped_kernels"]:
+            kernels.install(sorted(todo))
         if on_compile is not None and warmup.uncompiled(sorted(todo)):
             on_compile()
         if sync:

@@ -1,8 +1,9 @@
 """First-run kernel compiles moved off the critical path (issue 14).
 
 The graph, topology and flow stages run numba kernels that are compiled on first use and cached on
-disk (``@njit(cache=True)``): about 11 s, 1 s and 10 s of a fresh install's first image, one after
-the other, while the other core idles. When a single-process run (``runtime.cluster`` sync or auto
+disk (``@njit(cache=True)``): about 11 s, 1 s and 10 s of a first image, one after the other, while
+the other core idles, where the package's compiled kernels (:mod:`pipeline.kernels`) do not fit the
+machine. When a single-process run (``runtime.cluster`` sync or auto
 with one image) is about to compute those stages and their kernels have no cache yet, :func:`start`
 launches two background processes (``python -m pipeline.warmup STAGE ...``: the graph's; topology's
 then the flow's) that compile the kernels by running the stages' code on tiny inputs, while the main
@@ -21,11 +22,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from pipeline import kernels
 from pipeline.registry import default_config
 
-#: Modules whose numba kernels are compiled on first use and cached on disk, per stage.
-KERNEL_MODULES = {"graph": ("stages/graph/trace.py", "stages/graph/cross_section.py"),
-                  "topology": ("stages/topology/constrained_path.py",), "flow": ("stages/flow/kernel.py",)}
 #: Stages whose kernels a background process compiles.
 WARMED = ("graph", "topology", "flow")
 #: The stages one background process warms, in order: topology's one kernel (~1 s) is compiled by
@@ -39,43 +38,9 @@ _ROOT = Path(__file__).resolve().parents[1]
 _RUNNING: dict[str, subprocess.Popen] = {}
 
 
-def _numba_cache_dir(src: Path) -> tuple[Path, bool]:
-    """Where numba keeps the cache of ``src``'s kernels and whether it is a tree to search.
-
-    numba's locators, in its order: below ``NUMBA_CACHE_DIR`` when set; else the module's
-    ``__pycache__`` when it is writable (a source checkout, an editable or a user-writable install);
-    else its user-wide cache dir (``~/.cache/numba/<folder>_<hash>`` on Linux: a read-only install).
-    """
-    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
-    if cache_dir:
-        return Path(cache_dir), True
-    in_tree = src.parent / "__pycache__"
-    if os.access(in_tree if in_tree.is_dir() else src.parent, os.W_OK):
-        return in_tree, False
-    from numba.core.caching import UserWideCacheLocator
-    from numba.misc.appdirs import AppDirs
-
-    user = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
-    return user / UserWideCacheLocator.get_suitable_cache_subpath(str(src)), False
-
-
 def uncompiled(stages: list[str]) -> list[str]:
-    """The stages of ``stages`` with numba kernels that have no on-disk cache yet.
-
-    numba keeps its cache index (``<module>.<function>-<line>.py<ver>.nbi``) where
-    :func:`_numba_cache_dir` says.
-    """
-    out = []
-    for stage in stages:
-        for module in KERNEL_MODULES.get(stage, ()):
-            src = _ROOT / module
-            where, tree = _numba_cache_dir(src)
-            pattern = f"{src.stem}.*.nbi"
-            found = where.rglob(pattern) if tree else where.glob(pattern)
-            if next(iter(found), None) is None:
-                out.append(stage)
-                break
-    return out
+    """The stages of ``stages`` with numba kernels that have no on-disk cache yet (:func:`pipeline.kernels.is_cached`)."""
+    return [s for s in stages if not all(map(kernels.is_cached, kernels.KERNEL_MODULES.get(s, ())))]
 
 
 def start(stages: list[str]) -> list[str]:

@@ -9,6 +9,13 @@ from pathlib import Path
 
 import pytest
 
+import stages  # noqa: F401  (numba's compile target, stages.portable_cpu_target, set before a test imports numba)
+from pipeline import kernels, warmup
+
+# Tests call the stages directly too: start from the shipped kernels, as an installed polyvec's first run does
+# (where they fit this machine), not from compiling them in each test worker.
+kernels.install(list(warmup.WARMED))
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 

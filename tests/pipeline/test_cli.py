@@ -739,7 +739,8 @@ def test_readme_running_commands(tmp_path, cli):
 
 @pytest.mark.slow
 def test_first_run_says_it_compiles_kernels(tmp_path):
-    """With no numba cache the run says why it is slow; once cached, or with nothing to compute, it says nothing."""
+    """With no numba cache and no shipped kernels for it (``runtime.shipped_kernels=false``: another CPU) the
+    run says why it is slow; once cached, or with nothing to compute, it says nothing."""
     import os
     import subprocess
     import sys
@@ -747,7 +748,8 @@ def test_first_run_says_it_compiles_kernels(tmp_path):
     (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
     runs = [subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.until=graph",
-                            "runtime.cluster=sync", f"store.path={tmp_path / f'store{k}'}"], cwd=tmp_path,
+                            "runtime.cluster=sync", "runtime.shipped_kernels=false",
+                            f"store.path={tmp_path / f'store{k}'}"], cwd=tmp_path,
                            capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
     assert all(r.returncode == 0 for r in runs), runs[0].stderr + runs[1].stderr
     assert "compiling kernels, first run only" in runs[0].stderr

@@ -1,0 +1,213 @@
+"""The compiled kernels shipped with the package (pipeline/kernels.py, stages.portable_cpu_target; issue 14)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+
+import stages
+from pipeline import kernels, warmup
+from stages import synthetic
+
+REPO = Path(__file__).resolve().parents[2]
+MODULES = sorted(m for ms in kernels.KERNEL_MODULES.values() for m in ms)
+
+# The real stages on another drawing than the warm-up's, in a fresh process: which numba kernels of
+# graph and flow were loaded from the cache (hits) and which had to be compiled (misses).
+_CHECK = r"""
+import gc, json, sys
+import numpy as np
+from numba.core.dispatcher import Dispatcher
+from pipeline.registry import default_config as cfg
+from stages import graph, prep, synthetic
+from stages.config import from_section
+from stages.field import run as field_run
+from stages.flow import FlowConfig, polyvector_flow
+
+p = prep.run(cfg("prep"), image_bytes=synthetic.tee(size=64).png_bytes(), image_name="tee.png")
+f = field_run(cfg("field"), prep=p)
+g = graph.run(cfg("graph"), prep=p, field=f)
+xy = np.asarray(g["vertex_xy"], np.float64)[:6]
+params = from_section(FlowConfig, cfg("flow"), "flow")
+polyvector_flow(np.asarray(f["c0"]), np.asarray(f["c2"]), [xy], [np.full(len(xy), 3.0)],
+                [np.arange(len(xy), dtype=np.float64)], params)
+import stages.topology.stage as topology
+from pipeline.registry import BY_NAME
+# The tee needs no constrained walk; the example drawing does (the topology warm-up uses neither).
+p = prep.run(cfg("prep"), image_bytes=synthetic.example_drawing().png_bytes(), image_name="example.png")
+f = field_run(cfg("field"), prep=p)
+g = graph.run(cfg("graph"), prep=p, field=f)
+kp = BY_NAME["keypoints"].load().run(cfg("keypoints"), prep=p)
+edits = BY_NAME["keypoint_edits"].load().run(cfg("keypoint_edits"), keypoints=kp)
+topology.run(cfg("topology"), prep=p, keypoint_edits=edits, field=f, graph=g)
+out = {}
+for o in gc.get_objects():
+    if isinstance(o, Dispatcher) and o.py_func.__module__.split(".")[1] in ("graph", "topology", "flow"):
+        s = o.stats
+        out[o.py_func.__name__] = [sum(s.cache_hits.values()), sum(s.cache_misses.values())]
+print(json.dumps(out))
+"""
+
+
+def _shipped_fit() -> None:
+    """Skip unless this machine can load the shipped kernels (an x86-64-v3 Linux CPU, the Python they were built by);
+    where it can, this process must compile for their target."""
+    target = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())["target"]
+    if not (sys.platform.startswith("linux") and os.uname().machine == "x86_64"
+            and stages._PORTABLE_CPU_FLAGS <= stages._cpu_flags()) or target["python"] != kernels.target()["python"]:
+        pytest.skip(f"the shipped kernels are for {target}, which this machine cannot run")
+    assert kernels.target() == target
+
+
+def test_the_shipped_kernels_are_built_from_the_current_sources():
+    """Every kernel module's shipped cache was compiled from its source as it is now, by the pinned numba.
+
+    numba rejects a cache whose source file changed (any byte of it): after editing one of these
+    modules, run ``python -m pipeline.kernels`` and commit ``pipeline/compiled_kernels``."""
+    manifest = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
+    assert sorted(manifest["modules"]) == MODULES
+    for module in MODULES:
+        src = kernels.module_file(module)
+        assert manifest["modules"][module] == hashlib.sha256(src.read_bytes()).hexdigest(), \
+            f"{module} changed since its kernels were compiled: run python -m pipeline.kernels"
+        names = manifest["files"][module]
+        assert any(n.endswith(".nbi") for n in names) and any(n.endswith(".nbc") for n in names)
+        assert all((kernels.SHIPPED / module / n).is_file() for n in names)
+    assert manifest["target"]["numba"] == version("numba"), "pyproject.toml pins the numba that built them"
+    assert manifest["target"]["cpu_name"] == stages.PORTABLE_CPU and manifest["target"]["cpu_features"] == ""
+    pin = [d for d in (REPO / "pyproject.toml").read_text().splitlines() if d.strip().startswith('"numba')]
+    assert pin and f'"numba=={manifest["target"]["numba"]}"' in pin[0]
+
+
+def _load_check(tmp_path: Path, shipped: Path) -> None:
+    """Copy the kernels of ``shipped`` into an empty numba cache; the stages then load every kernel they call
+    from it (hits) and compile none (misses)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    code = f"from pipeline import kernels, warmup; print(kernels.install(list(warmup.WARMED), {str(shipped)!r}))"
+    copied = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
+                            check=True).stdout
+    assert sorted(eval(copied)) == MODULES
+    proc = subprocess.run([sys.executable, "-c", _CHECK], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    counts = json.loads(proc.stdout.strip().splitlines()[-1])
+    # The entry kernels of tracing, cross-sections, the constrained walk and the flow; their helpers are
+    # compiled into them.
+    for name in ("_trace_all", "_build_sections", "_search", "_flow_kernel"):
+        assert counts[name][0] >= 1, (name, counts)
+    assert not {k: v for k, v in counts.items() if v[1]}, counts
+
+
+@pytest.mark.slow
+def test_the_shipped_kernels_load_without_a_compile(tmp_path):
+    _shipped_fit()
+    _load_check(tmp_path, kernels.SHIPPED)
+
+
+@pytest.mark.slow
+def test_the_build_command_compiles_every_kernel_the_stages_then_load(tmp_path):
+    """The README's ``python -m pipeline.kernels`` (into another folder): the warm-ups compile exactly the
+    kernels the stages load on other drawings, and the same files as the shipped ones."""
+    _shipped_fit()
+    subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built")], cwd=REPO,
+                   check=True, capture_output=True, timeout=600)
+    built = json.loads((tmp_path / "built" / kernels.MANIFEST).read_text())
+    assert built == json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
+    _load_check(tmp_path, tmp_path / "built")
+
+
+def test_cache_dir_is_the_folder_numba_caches_in(tmp_path):
+    """:func:`kernels.cache_dir` names numba's own folder, with and without ``NUMBA_CACHE_DIR``."""
+    code = ("import json, sys\nfrom pathlib import Path\nfrom pipeline import kernels\n"
+            "import stages.graph.trace as t, stages.flow.kernel as k\n"
+            "print(json.dumps([[d._cache._cache_path, str(kernels.cache_dir(kernels.module_file(m)))]"
+            " for d, m in ((t._trace_all, 'stages.graph.trace'), (k._flow_kernel, 'stages.flow.kernel'))]))")
+    for extra in ({"NUMBA_CACHE_DIR": str(tmp_path / "nc")}, {}):
+        env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"} | extra
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
+                             check=True).stdout
+        for numbas, ours in json.loads(out):
+            assert Path(numbas) == Path(ours), extra
+
+
+def _fake_shipped(tmp_path: Path, monkeypatch, **changes) -> dict:
+    """A copy of the shipped kernels with ``changes`` to the manifest's target, used by :func:`kernels.install`."""
+    shipped = tmp_path / "shipped"
+    shutil.copytree(kernels.SHIPPED, shipped)
+    manifest = json.loads((shipped / "manifest.json").read_text())
+    manifest["target"] = kernels.target()
+    manifest["target"].update(changes)
+    (shipped / "manifest.json").write_text(json.dumps(manifest))
+    monkeypatch.setattr(kernels, "SHIPPED", shipped)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba-cache"))
+    return manifest
+
+
+def test_install_copies_a_stages_kernels_only_where_numba_has_none_and_they_fit(tmp_path, monkeypatch):
+    manifest = _fake_shipped(tmp_path, monkeypatch)
+    assert warmup.uncompiled(["prep", "graph", "flow"]) == ["graph", "flow"]
+    assert kernels.install(["prep", "graph"]) == ["stages.graph.trace", "stages.graph.cross_section"]
+    assert warmup.uncompiled(["graph", "flow"]) == ["flow"]
+    for module in ("stages.graph.trace", "stages.graph.cross_section"):
+        where = kernels.cache_dir(kernels.module_file(module))
+        assert sorted(p.name for p in where.iterdir() if p.stem.startswith(module.rsplit(".", 1)[1] + ".")) \
+            == sorted(manifest["files"][module])
+        for name in manifest["files"][module]:
+            assert (where / name).read_bytes() == (kernels.SHIPPED / module / name).read_bytes()
+    # A cache numba already has is left alone (it may hold more than the shipped one).
+    index = next(kernels.cache_dir(kernels.module_file("stages.graph.trace")).glob("trace.*.nbi"))
+    index.write_bytes(b"numba's own")
+    assert kernels.install(["graph", "flow"]) == ["stages.flow.kernel"]
+    assert index.read_bytes() == b"numba's own"
+
+
+@pytest.mark.parametrize("change", [{"numba": "0.1.0"}, {"python": "py399"}, {"cpu_name": "znver3"},
+                                    {"cpu_features": None}, {"platform": "darwin-arm64"}, "source"])
+def test_install_copies_nothing_built_for_another_machine_or_source(tmp_path, monkeypatch, change):
+    manifest = _fake_shipped(tmp_path, monkeypatch, **(change if isinstance(change, dict) else {}))
+    if change == "source":  # a kernel module edited since the build
+        manifest["modules"]["stages.flow.kernel"] = "0" * 64
+        (kernels.SHIPPED / kernels.MANIFEST).write_text(json.dumps(manifest))
+        assert kernels.install(["flow", "topology"]) == ["stages.topology.constrained_path"]
+        assert warmup.uncompiled(["flow"]) == ["flow"]
+    else:
+        assert kernels.install(list(warmup.WARMED)) == []
+        assert not (tmp_path / "numba-cache").exists() or not any((tmp_path / "numba-cache").rglob("*.nb?"))
+
+
+def test_the_portable_cpu_target_is_set_only_on_a_cpu_that_has_it(monkeypatch):
+    monkeypatch.setattr(stages, "_cpu_flags", lambda: stages._PORTABLE_CPU_FLAGS | {"avx512f"})
+    env = {}
+    assert stages.portable_cpu_target(env) == (sys.platform.startswith("linux") and os.uname().machine == "x86_64")
+    if env:
+        assert env == {"NUMBA_CPU_NAME": "x86-64-v3", "NUMBA_CPU_FEATURES": ""}
+    monkeypatch.setattr(stages, "_cpu_flags", lambda: stages._PORTABLE_CPU_FLAGS - {"avx2"})
+    env = {}
+    assert not stages.portable_cpu_target(env) and env == {}
+    # A user's own choice is kept.
+    env = {"NUMBA_CPU_NAME": "generic"}
+    assert not stages.portable_cpu_target(env) and env == {"NUMBA_CPU_NAME": "generic"}
+
+
+def test_the_first_run_of_a_fresh_install_compiles_nothing(tmp_path):
+    """An empty numba cache (a fresh install): the run copies the shipped kernels, says nothing of a compile,
+    and numba's cache then holds exactly the shipped files (nothing compiled beside them)."""
+    _shipped_fit()
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    run = subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.cluster=sync",
+                          f"store.path={tmp_path / 'store'}"], cwd=tmp_path, capture_output=True, text=True,
+                         env=env, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert "compiling kernels" not in run.stderr and (tmp_path / "out" / "vee.svg").is_file()
+    shipped = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())["files"]
+    cached = sorted(p.name for p in (tmp_path / "numba-cache").rglob("*.nb?"))
+    assert cached == sorted(n for names in shipped.values() for n in names)
