@@ -27,6 +27,8 @@ from importlib.metadata import version
 from importlib.util import find_spec
 from pathlib import Path
 
+import stages  # noqa: F401  (sets numba's CPU target, stages.portable_cpu_target, which target() reads)
+
 #: The modules with numba kernels that are compiled on first use and cached on disk, per stage.
 KERNEL_MODULES = {"graph": ("stages.graph.trace", "stages.graph.cross_section"),
                   "topology": ("stages.topology.constrained_path",), "flow": ("stages.flow.kernel",)}
@@ -70,10 +72,14 @@ def is_cached(module: str) -> bool:
 
 
 def target(environ=os.environ) -> dict:
-    """What a compiled kernel is bound to: numba's version, Python's, the platform and the CPU target."""
-    return {"numba": version("numba"), "python": f"py{sys.version_info[0]}{sys.version_info[1]}",
-            "platform": f"{sys.platform}-{os.uname().machine}",
+    """What a compiled kernel is bound to besides Python's version: numba's version, the platform, the CPU target."""
+    return {"numba": version("numba"), "platform": f"{sys.platform}-{os.uname().machine}",
             "cpu_name": environ.get("NUMBA_CPU_NAME"), "cpu_features": environ.get("NUMBA_CPU_FEATURES")}
+
+
+def python_tag() -> str:
+    """This Python's tag in numba's cache file names (``py311``)."""
+    return f"py{sys.version_info[0]}{sys.version_info[1]}"
 
 
 def _sha256(path: Path) -> str:
@@ -104,7 +110,8 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
         manifest = json.loads((shipped / MANIFEST).read_text())
     except (OSError, ValueError):
         return []
-    if manifest.get("target") != target():
+    tag = f".{python_tag()}."
+    if manifest.get("target") != target() or python_tag() not in manifest.get("pythons", ()):
         return []
     copied = []
     for stage in stages:
@@ -113,50 +120,79 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
             if manifest["modules"].get(module) != _sha256(src) or is_cached(module):
                 continue
             where = cache_dir(src)
-            where.mkdir(parents=True, exist_ok=True)
-            for name in sorted(manifest["files"][module], key=lambda n: n.endswith(".nbi")):
-                tmp = where / f"{name}.tmp.{os.getpid()}"
-                shutil.copyfile(shipped / module / name, tmp)
-                os.replace(tmp, where / name)
+            names = sorted((n for n in manifest["files"][module] if tag in n), key=lambda n: n.endswith(".nbi"))
+            try:
+                where.mkdir(parents=True, exist_ok=True)
+                for name in names:
+                    tmp = where / f"{name}.tmp.{os.getpid()}"
+                    shutil.copyfile(shipped / module / name, tmp)
+                    os.replace(tmp, where / name)
+            except OSError:  # numba cannot cache there either: it compiles in memory, as without them
+                continue
             copied.append(module)
     return copied
 
 
-def build(out: Path = SHIPPED) -> None:
+def _interpreter_tag(python: str) -> str:
+    """The Python tag of the interpreter ``python``; it must have the numba that built the other kernels."""
+    code = "import sys, importlib.metadata as m; print(f'py{sys.version_info[0]}{sys.version_info[1]}', m.version('numba'))"
+    try:
+        tag, numba = subprocess.run([python, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    except (OSError, subprocess.CalledProcessError, ValueError):
+        raise SystemExit(f"python -m pipeline.kernels: {python} does not run, or has no numba") from None
+    if numba != version("numba"):
+        raise SystemExit(f"python -m pipeline.kernels: {python} has numba {numba}, not {version('numba')}")
+    return tag
+
+
+def build(out: Path = SHIPPED, pythons: tuple[str, ...] = ()) -> None:
     """Compile every kernel module for the portable CPU target and write its cache files and manifest to ``out``.
 
     The kernels are compiled by the stages' warm-ups (:func:`pipeline.warmup.warm`: the stages' own code
     on the bundled example), in :data:`pipeline.warmup.PROCESSES`' two processes at once, into an empty
     ``NUMBA_CACHE_DIR``; ``out`` is replaced by the files that holds.
+
+    Parameters
+    ----------
+    out : Path
+        The folder to write (:data:`SHIPPED` by default).
+    pythons : tuple of str
+        Other Python interpreters to compile for as well (their cache files are named by their version);
+        each needs the same numba and the stages' dependencies, and runs this source tree.
     """
-    import stages
     from pipeline.warmup import PROCESSES
 
     if not stages.portable_cpu_target():
         raise SystemExit(f"python -m pipeline.kernels: this machine does not compile for {stages.PORTABLE_CPU} "
                          "(an x86-64 Linux CPU with that level, no NUMBA_CPU_NAME of its own): nothing built")
     out = Path(out)
+    interpreters = {python_tag(): sys.executable} | {_interpreter_tag(p): p for p in pythons}
+    root = str(Path(__file__).resolve().parents[1])
     with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, NUMBA_CACHE_DIR=tmp, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
-        procs = [subprocess.Popen([sys.executable, "-m", "pipeline.warmup", *group], env=env) for group in PROCESSES]
-        if any(proc.wait() for proc in procs):
-            raise SystemExit("python -m pipeline.kernels: a warm-up failed (above): nothing built")
+        env = dict(os.environ, NUMBA_CACHE_DIR=tmp, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1",
+                   PYTHONPATH=os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH")))))
+        for python in interpreters.values():
+            procs = [subprocess.Popen([python, "-m", "pipeline.warmup", *group], env=env, cwd=root)
+                     for group in PROCESSES]
+            if any(proc.wait() for proc in procs):
+                raise SystemExit(f"python -m pipeline.kernels: a warm-up by {python} failed (above): nothing built")
         files, sums = {}, {}
         shutil.rmtree(out, ignore_errors=True)
         for module in sorted(m for ms in KERNEL_MODULES.values() for m in ms):
             src = module_file(module)
             found = sorted(p for p in cache_dir(src, env).glob(f"{src.stem}.*") if p.suffix in (".nbi", ".nbc"))
-            if not any(p.suffix == ".nbi" for p in found):
-                raise SystemExit(f"python -m pipeline.kernels: the warm-ups compiled nothing of {module}")
+            for tag in interpreters:
+                if not any(p.suffix == ".nbi" and f".{tag}." in p.name for p in found):
+                    raise SystemExit(f"python -m pipeline.kernels: the warm-ups compiled nothing of {module} ({tag})")
             (out / module).mkdir(parents=True)
             for p in found:
                 shutil.copyfile(p, out / module / p.name)
             files[module], sums[module] = [p.name for p in found], _sha256(src)
-    (out / MANIFEST).write_text(json.dumps({"target": target(), "modules": sums, "files": files}, indent=1)
-                                     + "\n")
+    manifest = {"target": target(), "pythons": sorted(interpreters), "modules": sums, "files": files}
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     size = sum(p.stat().st_size for p in out.rglob("*"))
-    print(f"pipeline.kernels: {sum(map(len, files.values()))} files of {len(files)} modules, "
-          f"{size / 1e6:.1f} MB, in {out}")
+    print(f"pipeline.kernels: {sum(map(len, files.values()))} files of {len(files)} modules for "
+          f"{', '.join(sorted(interpreters))}, {size / 1e6:.1f} MB, in {out}")
 
 
 if __name__ == "__main__":
@@ -164,4 +200,7 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.kernels", description=build.__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=SHIPPED, help=f"where to write them (default {SHIPPED})")
-    build(parser.parse_args().out)
+    parser.add_argument("--python", action="append", default=[], metavar="PYTHON",
+                        help="another Python interpreter to compile for (repeatable), with the same numba")
+    args = parser.parse_args()
+    build(args.out, tuple(args.python))

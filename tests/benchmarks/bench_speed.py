@@ -8,7 +8,9 @@ in ``../shared/data``; the stand-in is the 500×753 scanned elephant of ``../sha
 Rows:
 
 - fresh install, first image: empty numba and config caches (``NUMBA_CACHE_DIR``, ``XDG_CACHE_HOME``)
-  and an empty store;
+  and an empty store; the package's compiled kernels are copied into the numba cache
+  (:mod:`pipeline.kernels`), and the same with ``runtime.shipped_kernels=false`` (their compile, as on
+  a machine they do not fit);
 - empty store, kernels compiled: the default run (``runtime.cluster=auto``; the same command line again
   on the emptied store, as a user's next drawing) and ``runtime.cluster=sync`` (a new command line);
 - every artifact a hit; a λ re-run (``flow.lam=0.5``: flow → select → export); a λ sweep of four jobs
@@ -153,6 +155,10 @@ def main() -> None:
         print(f"drawing: {args.image} ({w}×{h})")
         print(f"{'case':<58}{'wall':>10} {'peak':>10}   stage seconds (manifests)")
         row("fresh numba cache, empty store, first image", polyvec([img], out, store, env=env))
+        # Where the shipped kernels do not fit (another CPU or Python): the first run compiles them.
+        row("same, no shipped kernels (runtime.shipped_kernels=false)",
+            polyvec([img], out, str(tmp / "s0"), "runtime.shipped_kernels=false",
+                    env=dict(env, NUMBA_CACHE_DIR=str(tmp / "numba-cache-0"), XDG_CACHE_HOME=str(tmp / "cache-0"))))
         # The user's next command, the same line on an emptied store (a new drawing's artifacts are
         # missing as an empty store's are): its config composition is cached by now.
         shutil.rmtree(store)

@@ -24,6 +24,7 @@ MODULES = sorted(m for ms in kernels.KERNEL_MODULES.values() for m in ms)
 # graph and flow were loaded from the cache (hits) and which had to be compiled (misses).
 _CHECK = r"""
 import gc, json, sys
+import stages  # first, as polyvec's commands do: it sets numba's CPU target before numba reads it
 import numpy as np
 from numba.core.dispatcher import Dispatcher
 from pipeline.registry import default_config as cfg
@@ -58,13 +59,19 @@ print(json.dumps(out))
 
 
 def _shipped_fit() -> None:
-    """Skip unless this machine can load the shipped kernels (an x86-64-v3 Linux CPU, the Python they were built by);
-    where it can, this process must compile for their target."""
-    target = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())["target"]
+    """Skip unless this machine can load the shipped kernels (an x86-64-v3 Linux CPU, a Python they were built
+    by); where it can, this process must compile for their target."""
+    manifest = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
     if not (sys.platform.startswith("linux") and os.uname().machine == "x86_64"
-            and stages._PORTABLE_CPU_FLAGS <= stages._cpu_flags()) or target["python"] != kernels.target()["python"]:
-        pytest.skip(f"the shipped kernels are for {target}, which this machine cannot run")
-    assert kernels.target() == target
+            and stages._PORTABLE_CPU_FLAGS <= stages._cpu_flags()) or kernels.python_tag() not in manifest["pythons"]:
+        pytest.skip(f"the shipped kernels are for {manifest['target']} and {manifest['pythons']}, "
+                    "which this machine cannot run")
+    assert kernels.target() == manifest["target"]
+
+
+def _ours(names: list) -> list:
+    """The names of this Python's cache files among ``names``."""
+    return sorted(n for n in names if f".{kernels.python_tag()}." in n)
 
 
 def test_the_shipped_kernels_are_built_from_the_current_sources():
@@ -79,9 +86,12 @@ def test_the_shipped_kernels_are_built_from_the_current_sources():
         assert manifest["modules"][module] == hashlib.sha256(src.read_bytes()).hexdigest(), \
             f"{module} changed since its kernels were compiled: run python -m pipeline.kernels"
         names = manifest["files"][module]
-        assert any(n.endswith(".nbi") for n in names) and any(n.endswith(".nbc") for n in names)
+        for tag in manifest["pythons"]:
+            assert any(n.endswith(f".{tag}.nbi") for n in names) and any(f".{tag}." in n and n.endswith(".nbc")
+                                                                          for n in names), (module, tag)
         assert all((kernels.SHIPPED / module / n).is_file() for n in names)
     assert manifest["target"]["numba"] == version("numba"), "pyproject.toml pins the numba that built them"
+    assert "py311" in manifest["pythons"]  # CI's Python
     assert manifest["target"]["cpu_name"] == stages.PORTABLE_CPU and manifest["target"]["cpu_features"] == ""
     pin = [d for d in (REPO / "pyproject.toml").read_text().splitlines() if d.strip().startswith('"numba')]
     assert pin and f'"numba=={manifest["target"]["numba"]}"' in pin[0]
@@ -90,7 +100,9 @@ def test_the_shipped_kernels_are_built_from_the_current_sources():
 def _load_check(tmp_path: Path, shipped: Path) -> None:
     """Copy the kernels of ``shipped`` into an empty numba cache; the stages then load every kernel they call
     from it (hits) and compile none (misses)."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    # A user's shell: no CPU target of numba's set (the pytest process set it; children inherit it).
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba-cache")
     code = f"from pipeline import kernels, warmup; print(kernels.install(list(warmup.WARMED), {str(shipped)!r}))"
     copied = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
                             check=True).stdout
@@ -120,7 +132,10 @@ def test_the_build_command_compiles_every_kernel_the_stages_then_load(tmp_path):
     subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built")], cwd=REPO,
                    check=True, capture_output=True, timeout=600)
     built = json.loads((tmp_path / "built" / kernels.MANIFEST).read_text())
-    assert built == json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
+    shipped = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
+    assert built["target"] == shipped["target"] and built["modules"] == shipped["modules"]
+    assert built["pythons"] == [kernels.python_tag()]
+    assert {m: _ours(n) for m, n in built["files"].items()} == {m: _ours(n) for m, n in shipped["files"].items()}
     _load_check(tmp_path, tmp_path / "built")
 
 
@@ -138,13 +153,15 @@ def test_cache_dir_is_the_folder_numba_caches_in(tmp_path):
             assert Path(numbas) == Path(ours), extra
 
 
-def _fake_shipped(tmp_path: Path, monkeypatch, **changes) -> dict:
-    """A copy of the shipped kernels with ``changes`` to the manifest's target, used by :func:`kernels.install`."""
+def _fake_shipped(tmp_path: Path, monkeypatch, pythons=None, **changes) -> dict:
+    """A copy of the shipped kernels for this machine, with ``changes`` to the manifest's target (and its
+    ``pythons``), used by :func:`kernels.install`."""
     shipped = tmp_path / "shipped"
     shutil.copytree(kernels.SHIPPED, shipped)
     manifest = json.loads((shipped / "manifest.json").read_text())
     manifest["target"] = kernels.target()
     manifest["target"].update(changes)
+    manifest["pythons"] = pythons or [kernels.python_tag()]
     (shipped / "manifest.json").write_text(json.dumps(manifest))
     monkeypatch.setattr(kernels, "SHIPPED", shipped)
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba-cache"))
@@ -159,8 +176,8 @@ def test_install_copies_a_stages_kernels_only_where_numba_has_none_and_they_fit(
     for module in ("stages.graph.trace", "stages.graph.cross_section"):
         where = kernels.cache_dir(kernels.module_file(module))
         assert sorted(p.name for p in where.iterdir() if p.stem.startswith(module.rsplit(".", 1)[1] + ".")) \
-            == sorted(manifest["files"][module])
-        for name in manifest["files"][module]:
+            == _ours(manifest["files"][module])
+        for name in _ours(manifest["files"][module]):
             assert (where / name).read_bytes() == (kernels.SHIPPED / module / name).read_bytes()
     # A cache numba already has is left alone (it may hold more than the shipped one).
     index = next(kernels.cache_dir(kernels.module_file("stages.graph.trace")).glob("trace.*.nbi"))
@@ -169,7 +186,7 @@ def test_install_copies_a_stages_kernels_only_where_numba_has_none_and_they_fit(
     assert index.read_bytes() == b"numba's own"
 
 
-@pytest.mark.parametrize("change", [{"numba": "0.1.0"}, {"python": "py399"}, {"cpu_name": "znver3"},
+@pytest.mark.parametrize("change", [{"numba": "0.1.0"}, {"pythons": ["py399"]}, {"cpu_name": "znver3"},
                                     {"cpu_features": None}, {"platform": "darwin-arm64"}, "source"])
 def test_install_copies_nothing_built_for_another_machine_or_source(tmp_path, monkeypatch, change):
     manifest = _fake_shipped(tmp_path, monkeypatch, **(change if isinstance(change, dict) else {}))
@@ -210,4 +227,12 @@ def test_the_first_run_of_a_fresh_install_compiles_nothing(tmp_path):
     assert "compiling kernels" not in run.stderr and (tmp_path / "out" / "vee.svg").is_file()
     shipped = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())["files"]
     cached = sorted(p.name for p in (tmp_path / "numba-cache").rglob("*.nb?"))
-    assert cached == sorted(n for names in shipped.values() for n in names)
+    assert cached == _ours([n for names in shipped.values() for n in names])
+
+
+def test_install_passes_over_a_cache_folder_it_cannot_write(tmp_path, monkeypatch):
+    """numba cannot cache there either (it then compiles in memory): no copy, no error."""
+    _fake_shipped(tmp_path, monkeypatch)
+    (tmp_path / "a file").write_text("")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a file"))
+    assert kernels.install(list(warmup.WARMED)) == []
