@@ -23,7 +23,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from importlib.metadata import version
 from importlib.util import find_spec
 from pathlib import Path
 
@@ -66,14 +65,18 @@ def cache_dir(src: Path, environ=os.environ) -> Path:
 
 
 def is_cached(module: str) -> bool:
-    """Whether numba's cache folder holds an index of ``module``'s kernels (``<file>.<kernel>-<line>.py<ver>.nbi``)."""
+    """Whether numba's cache folder holds an index of ``module``'s kernels for this Python
+    (``<file>.<kernel>-<line>.py<ver>.nbi``; Pythons of other versions share the folder)."""
     src = module_file(module)
-    return next(cache_dir(src).glob(f"{src.stem}.*.nbi"), None) is not None
+    return next(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"), None) is not None
 
 
 def target(environ=os.environ) -> dict:
     """What a compiled kernel is bound to besides Python's version: numba's version, the platform, the CPU target."""
-    return {"numba": version("numba"), "platform": f"{sys.platform}-{os.uname().machine}",
+    import platform
+    from importlib.metadata import version  # ~20 ms: only when a kernel module has no cache
+
+    return {"numba": version("numba"), "platform": f"{sys.platform}-{platform.machine()}",
             "cpu_name": environ.get("NUMBA_CPU_NAME"), "cpu_features": environ.get("NUMBA_CPU_FEATURES")}
 
 
@@ -105,6 +108,9 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     list of str
         The kernel modules copied.
     """
+    modules = [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
+    if not modules:  # the common case: nothing to read
+        return []
     shipped = Path(shipped or SHIPPED)
     try:
         manifest = json.loads((shipped / MANIFEST).read_text())
@@ -114,22 +120,21 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     if manifest.get("target") != target() or python_tag() not in manifest.get("pythons", ()):
         return []
     copied = []
-    for stage in stages:
-        for module in KERNEL_MODULES.get(stage, ()):
-            src = module_file(module)
-            if manifest["modules"].get(module) != _sha256(src) or is_cached(module):
-                continue
-            where = cache_dir(src)
-            names = sorted((n for n in manifest["files"][module] if tag in n), key=lambda n: n.endswith(".nbi"))
-            try:
-                where.mkdir(parents=True, exist_ok=True)
-                for name in names:
-                    tmp = where / f"{name}.tmp.{os.getpid()}"
-                    shutil.copyfile(shipped / module / name, tmp)
-                    os.replace(tmp, where / name)
-            except OSError:  # numba cannot cache there either: it compiles in memory, as without them
-                continue
-            copied.append(module)
+    for module in modules:
+        src = module_file(module)
+        if manifest["modules"].get(module) != _sha256(src):
+            continue
+        where = cache_dir(src)
+        names = sorted((n for n in manifest["files"][module] if tag in n), key=lambda n: n.endswith(".nbi"))
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            for name in names:
+                tmp = where / f"{name}.tmp.{os.getpid()}"
+                shutil.copyfile(shipped / module / name, tmp)
+                os.replace(tmp, where / name)
+        except OSError:  # numba cannot cache there either: it compiles in memory, as without them
+            continue
+        copied.append(module)
     return copied
 
 
@@ -140,8 +145,8 @@ def _interpreter_tag(python: str) -> str:
         tag, numba = subprocess.run([python, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     except (OSError, subprocess.CalledProcessError, ValueError):
         raise SystemExit(f"python -m pipeline.kernels: {python} does not run, or has no numba") from None
-    if numba != version("numba"):
-        raise SystemExit(f"python -m pipeline.kernels: {python} has numba {numba}, not {version('numba')}")
+    if numba != target()["numba"]:
+        raise SystemExit(f"python -m pipeline.kernels: {python} has numba {numba}, not {target()['numba']}")
     return tag
 
 

@@ -236,3 +236,13 @@ def test_install_passes_over_a_cache_folder_it_cannot_write(tmp_path, monkeypatc
     (tmp_path / "a file").write_text("")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a file"))
     assert kernels.install(list(warmup.WARMED)) == []
+
+
+def test_another_pythons_cache_in_the_same_folder_is_not_this_ones(tmp_path, monkeypatch):
+    """numba names its files by Python version and Pythons share a cache folder: a py399 index is not ours."""
+    _fake_shipped(tmp_path, monkeypatch)
+    where = kernels.cache_dir(kernels.module_file("stages.flow.kernel"))
+    where.mkdir(parents=True)
+    (where / "kernel._flow_kernel-273.py399.nbi").write_bytes(b"")
+    assert not kernels.is_cached("stages.flow.kernel")
+    assert kernels.install(["flow"]) == ["stages.flow.kernel"] and kernels.is_cached("stages.flow.kernel")
