@@ -282,8 +282,8 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         try:
             batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store,
-                              on_compile=lambda: console.print("polyvec: compiling kernels, first run only "
-                                                               "(about half a minute)", highlight=False))
+                              on_compile=lambda why: console.print("polyvec: compiling kernels, first run only "
+                                                                   f"(about half a minute; {why})", highlight=False, soft_wrap=True))
         except ClusterError as exc:
             store.remove_if_unused()  # a run that did nothing leaves no empty store folder
             raise UsageError(str(exc)) from None

@@ -89,12 +89,51 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _manifest(shipped: Path | None) -> dict | None:
+    """The manifest of a folder :func:`build` wrote (:data:`SHIPPED` by default), or None without one."""
+    try:
+        return json.loads((Path(shipped or SHIPPED) / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def misfit(manifest: dict | None, module: str | None = None) -> str:
+    """Why shipped kernels (``module``'s, when given) do not fit this process, in words; ``""`` when they do."""
+    if manifest is None:
+        return "none are shipped with this install"
+    theirs, mine = manifest.get("target", {}), target()
+    if theirs.get("numba") != mine["numba"]:
+        return f"the shipped ones are numba {theirs.get('numba')}'s, this is numba {mine['numba']}"
+    if theirs.get("platform") != mine["platform"]:
+        return f"the shipped ones are for {theirs.get('platform')}, not {mine['platform']}"
+    if (theirs.get("cpu_name"), theirs.get("cpu_features")) != (mine["cpu_name"], mine["cpu_features"]):
+        if mine["cpu_name"] is None and mine["cpu_features"] is None:
+            return f"the shipped ones need an {theirs.get('cpu_name')} CPU (AVX2, FMA), which this one is not"
+        return "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set in the environment"
+    if python_tag() not in manifest.get("pythons", ()):
+        return f"none are shipped for Python {sys.version_info[0]}.{sys.version_info[1]}"
+    if module is not None and manifest["modules"].get(module) != _sha256(module_file(module)):
+        return f"{module} changed since they were built (python -m pipeline.kernels)"
+    return ""
+
+
+def why_compiled(stages: list[str], shipped: Path | None = None) -> str:
+    """Why the uncached kernels of ``stages`` are compiled rather than copied, in words (``""``: all are cached)."""
+    manifest = _manifest(shipped)
+    modules = [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
+    if not modules:
+        return ""
+    return next(filter(None, (misfit(manifest, m) for m in modules)),
+                "the shipped ones could not be copied into numba's cache folder")
+
+
 def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     """Copy the shipped kernels of ``stages`` into numba's cache where it has none yet and they fit.
 
-    A module's files are copied only when the manifest's target is :func:`target` and its sha256 is
-    the source file's; each file is written beside its place and renamed into it (data files before
-    the index that names them), so that a process that reads the cache meanwhile sees whole files.
+    A module's files are copied only when :func:`misfit` finds nothing against them (the manifest's
+    target is :func:`target`, this Python is among its versions, the module's sha256 is its source
+    file's); each file is written beside its place and renamed into it (data files before the index
+    that names them), so that a process that reads the cache meanwhile sees whole files.
 
     Parameters
     ----------
@@ -112,18 +151,15 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     if not modules:  # the common case: nothing to read
         return []
     shipped = Path(shipped or SHIPPED)
-    try:
-        manifest = json.loads((shipped / MANIFEST).read_text())
-    except (OSError, ValueError):
+    manifest = _manifest(shipped)
+    if misfit(manifest):
         return []
     tag = f".{python_tag()}."
-    if manifest.get("target") != target() or python_tag() not in manifest.get("pythons", ()):
-        return []
     copied = []
     for module in modules:
-        src = module_file(module)
-        if manifest["modules"].get(module) != _sha256(src):
+        if misfit(manifest, module):
             continue
+        src = module_file(module)
         where = cache_dir(src)
         names = sorted((n for n in manifest["files"][module] if tag in n), key=lambda n: n.endswith(".nbi"))
         try:

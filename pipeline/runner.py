@@ -588,7 +588,7 @@ def validated_stages(cfg) -> list:
 
 
 def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResult], None] | None = None,
-              store: ArtifactStore | None = None, on_compile: Callable[[], None] | None = None) -> BatchResult:
+              store: ArtifactStore | None = None, on_compile: Callable[[str], None] | None = None) -> BatchResult:
     """Run the stage DAG over images through the content-addressed store.
 
     Parameters
@@ -603,8 +603,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         Defaults to ``ArtifactStore(cfg.store.path)``.
     on_compile : callable, optional
         Called once, before any work, when a stage with work to do has numba kernels that are not
-        compiled yet and none are shipped for this machine (:mod:`pipeline.kernels`): a first run
-        that takes longer.
+        compiled yet and no shipped ones fit this machine (:mod:`pipeline.kernels`): a first run that
+        takes longer. Its argument says why, in words.
 
     Returns
     -------
@@ -640,7 +640,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         if runtime["shipped_kernels"]:
             kernels.install(sorted(todo))
         if on_compile is not None and warmup.uncompiled(sorted(todo)):
-            on_compile()
+            on_compile("runtime.shipped_kernels=false" if not runtime["shipped_kernels"]
+                       else kernels.why_compiled(sorted(todo)))
         if sync:
             # One image in-process leaves a core idle: its graph and flow kernels (first run only)
             # compile there meanwhile. Started before the code check below (~0.7 s of imports): the

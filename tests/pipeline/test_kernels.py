@@ -186,18 +186,36 @@ def test_install_copies_a_stages_kernels_only_where_numba_has_none_and_they_fit(
     assert index.read_bytes() == b"numba's own"
 
 
-@pytest.mark.parametrize("change", [{"numba": "0.1.0"}, {"pythons": ["py399"]}, {"cpu_name": "znver3"},
-                                    {"cpu_features": None}, {"platform": "darwin-arm64"}, "source"])
-def test_install_copies_nothing_built_for_another_machine_or_source(tmp_path, monkeypatch, change):
+@pytest.mark.parametrize("change, why", [
+    ({"numba": "0.1.0"}, "the shipped ones are numba 0.1.0's, this is numba "),
+    ({"pythons": ["py399"]}, "none are shipped for Python 3."),
+    ({"cpu_name": "znver3"}, "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set"),
+    ({"cpu_features": None}, "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set"),
+    ({"platform": "darwin-arm64"}, "the shipped ones are for darwin-arm64, not "),
+    ("source", "stages.flow.kernel changed since they were built (python -m pipeline.kernels)")])
+def test_install_copies_nothing_built_for_another_machine_or_source(tmp_path, monkeypatch, change, why):
+    """And the first run's compile message says why (:func:`kernels.why_compiled`)."""
     manifest = _fake_shipped(tmp_path, monkeypatch, **(change if isinstance(change, dict) else {}))
     if change == "source":  # a kernel module edited since the build
         manifest["modules"]["stages.flow.kernel"] = "0" * 64
         (kernels.SHIPPED / kernels.MANIFEST).write_text(json.dumps(manifest))
+        assert kernels.why_compiled(["flow", "topology"]).startswith(why)
         assert kernels.install(["flow", "topology"]) == ["stages.topology.constrained_path"]
         assert warmup.uncompiled(["flow"]) == ["flow"]
     else:
+        assert kernels.why_compiled(list(warmup.WARMED)).startswith(why)
         assert kernels.install(list(warmup.WARMED)) == []
         assert not (tmp_path / "numba-cache").exists() or not any((tmp_path / "numba-cache").rglob("*.nb?"))
+    assert kernels.why_compiled(["prep", "select"]) == ""
+
+
+def test_the_compile_message_names_a_cpu_without_the_level_and_a_missing_manifest(tmp_path, monkeypatch):
+    manifest = _fake_shipped(tmp_path, monkeypatch)
+    monkeypatch.setattr(kernels, "target", lambda environ=None: dict(manifest["target"], cpu_name=None,
+                                                                    cpu_features=None))
+    assert kernels.why_compiled(["graph"]) == "the shipped ones need an x86-64-v3 CPU (AVX2, FMA), which this one is not"
+    (kernels.SHIPPED / kernels.MANIFEST).unlink()
+    assert kernels.why_compiled(["graph"]) == "none are shipped with this install"
 
 
 def test_the_portable_cpu_target_is_set_only_on_a_cpu_that_has_it(monkeypatch):
@@ -236,6 +254,7 @@ def test_install_passes_over_a_cache_folder_it_cannot_write(tmp_path, monkeypatc
     (tmp_path / "a file").write_text("")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a file"))
     assert kernels.install(list(warmup.WARMED)) == []
+    assert kernels.why_compiled(["graph"]) == "the shipped ones could not be copied into numba's cache folder"
 
 
 def test_another_pythons_cache_in_the_same_folder_is_not_this_ones(tmp_path, monkeypatch):
