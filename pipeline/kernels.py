@@ -7,8 +7,9 @@ kernel module and a ``manifest.json``), built by ``python -m pipeline.kernels`` 
 :func:`stages.portable_cpu_target` (x86-64-v3). Before a run computes a stage whose kernels have no
 cache yet, :func:`install` copies that stage's shipped files into the folder where numba looks for them
 (:func:`cache_dir`), when they fit: built from this very source file (sha256), by this numba and
-Python, for the CPU target and platform this process compiles for. numba then loads them, and checks
-the same things again itself. Otherwise nothing is copied and the kernels compile as before
+Python, for the CPU target and platform this process compiles for (on a cluster joined by
+``runtime.scheduler_address``, each worker copies them into its own machine's cache before its first
+task). numba then loads them, and checks the same things again itself. Otherwise nothing is copied and the kernels compile as before
 (:mod:`pipeline.warmup`). ``runtime.shipped_kernels=false`` turns the copy off.
 
 A developer who changes a kernel module runs ``python -m pipeline.kernels`` again (a test says when).

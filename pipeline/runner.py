@@ -663,6 +663,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
                 client = get_client(runtime)
                 if runtime["scheduler_address"]:
                     check_store_reachable(client, store)
+                    if runtime["shipped_kernels"]:  # the workers' machines have numba caches of their own
+                        client.run(kernels.install, sorted(todo))
                 _run_dask(pending, store.url, batch, report, client)
         finally:
             if child is not None and child.proc.is_alive():  # a failed code check: _run_sync never ran

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import socket
@@ -252,22 +253,43 @@ def test_existing_scheduler_and_worker_processes(tmp_path, images, compose_cfg):
     sched = subprocess.Popen(bin_dir + ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
                                         str(port), "--no-dashboard"], stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL)
+    # The worker as on another machine: a numba cache of its own, empty, and no CPU target set by us.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "worker numba cache")
     worker = subprocess.Popen(bin_dir + ["distributed.cli.dask_worker", addr, "--nthreads", "1", "--no-dashboard",
                                          "--name", "polyvec-test-worker"], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
+                              stderr=subprocess.DEVNULL, env=env)
     try:
-        cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=field",
+        cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=graph",
                           f"runtime.scheduler_address={addr}")
         from conftest import wait_for_dask_worker
 
         wait_for_dask_worker(addr)
         batch = run_batch(images, cfg)
         assert not batch.failed_images
-        assert _statuses(batch)["field"] == ["computed", "computed"]
+        assert _statuses(batch)["graph"] == ["computed", "computed"]
         from pipeline.store import ArtifactStore
 
         manifest = ArtifactStore(tmp_path / "store").manifest("field", batch.keys(str(images[0]))["field"])
         assert manifest["pid"] != os.getpid()  # computed by the external worker
+        # The package's compiled kernels were copied into the worker's cache: it compiled none.
+        from pipeline.kernels import SHIPPED, MANIFEST
+
+        if json.loads((SHIPPED / MANIFEST).read_text())["target"]["cpu_name"] == os.environ.get("NUMBA_CPU_NAME"):
+            from distributed import Client
+
+            def graph_kernel_stats() -> dict:  # in the worker (a nested function: dask sends it by value)
+                import gc
+
+                from numba.core.dispatcher import Dispatcher
+
+                return {o.py_func.__name__: (sum(o.stats.cache_hits.values()), sum(o.stats.cache_misses.values()))
+                        for o in gc.get_objects()
+                        if isinstance(o, Dispatcher) and o.py_func.__module__.startswith("stages.graph")}
+
+            with Client(addr, timeout=30) as client:
+                (stats,) = client.run(graph_kernel_stats).values()
+            assert stats["_trace_all"][0] >= 1 and not any(miss for _, miss in stats.values()), stats
     finally:
         close_client()
         worker.terminate()
