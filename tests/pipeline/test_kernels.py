@@ -126,11 +126,12 @@ def test_the_shipped_kernels_load_without_a_compile(tmp_path):
 
 @pytest.mark.slow
 def test_the_build_command_compiles_every_kernel_the_stages_then_load(tmp_path):
-    """The README's ``python -m pipeline.kernels`` (into another folder): the warm-ups compile exactly the
-    kernels the stages load on other drawings, and the same files as the shipped ones."""
+    """The README's ``python -m pipeline.kernels`` (into another folder, with ``--python``): the warm-ups
+    compile exactly the kernels the stages load on other drawings, and the same files as the shipped ones."""
     _shipped_fit()
-    subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built")], cwd=REPO,
-                   check=True, capture_output=True, timeout=600)
+    # --python: another interpreter (here this one again: the same Python's files, built once)
+    subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built"), "--python",
+                    sys.executable], cwd=REPO, check=True, capture_output=True, timeout=600)
     built = json.loads((tmp_path / "built" / kernels.MANIFEST).read_text())
     shipped = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
     assert built["target"] == shipped["target"] and built["modules"] == shipped["modules"]
@@ -265,3 +266,11 @@ def test_another_pythons_cache_in_the_same_folder_is_not_this_ones(tmp_path, mon
     (where / "kernel._flow_kernel-273.py399.nbi").write_bytes(b"")
     assert not kernels.is_cached("stages.flow.kernel")
     assert kernels.install(["flow"]) == ["stages.flow.kernel"] and kernels.is_cached("stages.flow.kernel")
+
+
+def test_the_build_refuses_an_interpreter_without_the_same_numba(tmp_path):
+    """``--python`` with a Python that lacks numba: one line, nothing built, the shipped kernels untouched."""
+    proc = subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built"), "--python",
+                           sys.executable + "-nonexistent"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "does not run, or has no numba" in proc.stderr
+    assert not (tmp_path / "built").exists()
