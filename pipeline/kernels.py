@@ -17,6 +17,7 @@ A developer who changes a kernel module runs ``python -m pipeline.kernels`` agai
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -72,12 +73,18 @@ def is_cached(module: str) -> bool:
     return next(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"), None) is not None
 
 
+@functools.lru_cache(maxsize=1)
+def _numba_version() -> str:
+    from importlib.metadata import version  # ~20 ms: only when a kernel module has no cache
+
+    return version("numba")
+
+
 def target(environ=os.environ) -> dict:
     """What a compiled kernel is bound to besides Python's version: numba's version, the platform, the CPU target."""
     import platform
-    from importlib.metadata import version  # ~20 ms: only when a kernel module has no cache
 
-    return {"numba": version("numba"), "platform": f"{sys.platform}-{platform.machine()}",
+    return {"numba": _numba_version(), "platform": f"{sys.platform}-{platform.machine()}",
             "cpu_name": environ.get("NUMBA_CPU_NAME"), "cpu_features": environ.get("NUMBA_CPU_FEATURES")}
 
 
@@ -98,8 +105,13 @@ def _manifest(shipped: Path | None) -> dict | None:
         return None
 
 
-def misfit(manifest: dict | None, module: str | None = None) -> str:
-    """Why shipped kernels (``module``'s, when given) do not fit this process, in words; ``""`` when they do."""
+def _uncached(stages: list[str]) -> list[str]:
+    """The kernel modules of ``stages`` that numba has no cache of (:func:`is_cached`)."""
+    return [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
+
+
+def misfit(manifest: dict | None) -> str:
+    """Why shipped kernels do not fit this process, in words; ``""`` when they do (see :func:`stale`)."""
     if manifest is None:
         return "none are shipped with this install"
     theirs, mine = manifest.get("target", {}), target()
@@ -113,28 +125,34 @@ def misfit(manifest: dict | None, module: str | None = None) -> str:
         return "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set in the environment"
     if python_tag() not in manifest.get("pythons", ()):
         return f"none are shipped for Python {sys.version_info[0]}.{sys.version_info[1]}"
-    if module is not None and manifest["modules"].get(module) != _sha256(module_file(module)):
+    return ""
+
+
+def stale(manifest: dict, module: str) -> str:
+    """``""`` when the shipped kernels of ``module`` were built from its source as it is (sha256), else why not."""
+    if manifest["modules"].get(module) != _sha256(module_file(module)):
         return f"{module} changed since they were built (python -m pipeline.kernels)"
     return ""
 
 
 def why_compiled(stages: list[str], shipped: Path | None = None) -> str:
     """Why the uncached kernels of ``stages`` are compiled rather than copied, in words (``""``: all are cached)."""
-    manifest = _manifest(shipped)
-    modules = [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
+    modules = _uncached(stages)
     if not modules:
         return ""
-    return next(filter(None, (misfit(manifest, m) for m in modules)),
-                "the shipped ones could not be copied into numba's cache folder")
+    manifest = _manifest(shipped)
+    return (misfit(manifest) or next(filter(None, (stale(manifest, m) for m in modules)), "")
+            or "the shipped ones could not be copied into numba's cache folder")
 
 
 def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     """Copy the shipped kernels of ``stages`` into numba's cache where it has none yet and they fit.
 
-    A module's files are copied only when :func:`misfit` finds nothing against them (the manifest's
-    target is :func:`target`, this Python is among its versions, the module's sha256 is its source
-    file's); each file is written beside its place and renamed into it (data files before the index
-    that names them), so that a process that reads the cache meanwhile sees whole files.
+    A module's files are copied only when neither :func:`misfit` nor :func:`stale` finds anything
+    against them (the manifest's target is :func:`target`, this Python is among its versions, the
+    module's sha256 is its source file's); each file is written beside its place and renamed into it
+    (data files before the index that names them), so that a process that reads the cache meanwhile
+    sees whole files.
 
     Parameters
     ----------
@@ -148,7 +166,7 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     list of str
         The kernel modules copied.
     """
-    modules = [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
+    modules = _uncached(stages)
     if not modules:  # the common case: nothing to read
         return []
     shipped = Path(shipped or SHIPPED)
@@ -158,17 +176,19 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     tag = f".{python_tag()}."
     copied = []
     for module in modules:
-        if misfit(manifest, module):
+        if stale(manifest, module):
             continue
-        src = module_file(module)
-        where = cache_dir(src)
+        where = cache_dir(module_file(module))
         names = sorted((n for n in manifest["files"][module] if tag in n), key=lambda n: n.endswith(".nbi"))
         try:
             where.mkdir(parents=True, exist_ok=True)
             for name in names:
                 tmp = where / f"{name}.tmp.{os.getpid()}"
-                shutil.copyfile(shipped / module / name, tmp)
-                os.replace(tmp, where / name)
+                try:
+                    shutil.copyfile(shipped / module / name, tmp)
+                    os.replace(tmp, where / name)
+                finally:
+                    tmp.unlink(missing_ok=True)
         except OSError:  # numba cannot cache there either: it compiles in memory, as without them
             continue
         copied.append(module)
