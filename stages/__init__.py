@@ -48,7 +48,9 @@ def portable_cpu_target(environ=os.environ) -> bool:
     its kernels compiled for this level (:mod:`pipeline.kernels`), so they load on every x86-64 CPU that
     has it (most since 2015) instead of being compiled on a user's first drawing. A user's own
     ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES`` are kept. Same speed and byte-identical outputs as this
-    machine's own target (stages/DECISIONS.md). Must run before numba is imported (it reads them once).
+    machine's own target (stages/DECISIONS.md). Must run before numba is imported (it reads them once);
+    being environment variables, they hold for the whole process and its children, so other numba code
+    run beside polyvec's compiles for that level too (a CPU with AVX-512 does not use it there).
 
     Returns
     -------
