@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import io
 import json
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -67,10 +69,37 @@ def cache_dir(src: Path, environ=os.environ) -> Path:
 
 
 def is_cached(module: str) -> bool:
-    """Whether numba's cache folder holds an index of ``module``'s kernels for this Python
-    (``<file>.<kernel>-<line>.py<ver>.nbi``; Pythons of other versions share the folder)."""
+    """Whether numba's cache folder holds a current index of each of ``module``'s kernels for this Python.
+
+    numba names an index ``<file>.<kernel>-<line>.py<ver>.nbi`` (Pythons of other versions share the
+    folder) and writes into it its own version (a pickled str) and the sha256 digest of the module's
+    source it compiled, and its kernels' keys hold the CPU they were compiled for: an index from before
+    the source changed (a ``git pull``, an upgrade in place) or for another CPU target (a cache from
+    before :func:`stages.portable_cpu_target`) is no cache, numba compiles again. Digest and CPU name are
+    looked for in the indexes of the shipped kernels' numba, whose format this knows; any other numba's
+    index is taken as a cache.
+    """
     src = module_file(module)
-    return next(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"), None) is not None
+    indexes = list(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"))
+    digest, cpu = None, os.environ.get("NUMBA_CPU_NAME", "").encode()
+    for index in indexes:
+        try:
+            data = index.read_bytes()
+            version = pickle.Unpickler(io.BytesIO(data)).load()
+        except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError):
+            return False  # numba cannot read it either
+        if version != _shipped_numba():
+            continue
+        digest = digest or hashlib.sha256(src.read_bytes()).digest()
+        if digest not in data or cpu not in data:
+            return False
+    return bool(indexes)
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_numba() -> str | None:
+    """The numba version of the shipped kernels (None without a manifest)."""
+    return (_manifest(None) or {}).get("target", {}).get("numba")
 
 
 @functools.lru_cache(maxsize=1)

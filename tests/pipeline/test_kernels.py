@@ -182,9 +182,47 @@ def test_install_copies_a_stages_kernels_only_where_numba_has_none_and_they_fit(
             assert (where / name).read_bytes() == (kernels.SHIPPED / module / name).read_bytes()
     # A cache numba already has is left alone (it may hold more than the shipped one).
     index = next(kernels.cache_dir(kernels.module_file("stages.graph.trace")).glob("trace.*.nbi"))
-    index.write_bytes(b"numba's own")
+    index.write_bytes(_index("stages.graph.trace", current=True))
     assert kernels.install(["graph", "flow"]) == ["stages.flow.kernel"]
-    assert index.read_bytes() == b"numba's own"
+    assert index.read_bytes() == _index("stages.graph.trace", current=True)
+
+
+def _index(module: str, current: bool, numba: str | None = None, cpu: str | None = None) -> bytes:
+    """A numba index as numba writes it: its version, then the digest of the source it compiled and its
+    overloads, keyed by signature, target (CPU name: this process's by default) and bytecode hashes."""
+    import pickle
+
+    src = kernels.module_file(module).read_bytes()
+    digest = hashlib.sha256(src if current else src + b"# an older line").digest()
+    key = ("sig", ("x86_64-unknown-linux-gnu", cpu or os.environ.get("NUMBA_CPU_NAME", "znver3"), ""), ("h", "h"))
+    return pickle.dumps(numba or version("numba"), protocol=-1) + pickle.dumps((digest, {key: "x.1.nbc"}), protocol=-1)
+
+
+def test_an_index_from_before_the_source_changed_is_no_cache(tmp_path, monkeypatch):
+    """After a ``git pull`` or an upgrade in place, numba's index of a changed module is stale: numba would
+    compile again (on the critical path, unannounced). It is not taken for a cache: the shipped kernels,
+    built from the new source, replace it (or, where none fit, the warm-up starts and the run says so)."""
+    _fake_shipped(tmp_path, monkeypatch)
+    where = kernels.cache_dir(kernels.module_file("stages.flow.kernel"))
+    where.mkdir(parents=True)
+    stale = where / "kernel._flow_kernel-273.py311.nbi".replace("py311", kernels.python_tag())
+    stale.write_bytes(_index("stages.flow.kernel", current=False))
+    assert not kernels.is_cached("stages.flow.kernel") and warmup.uncompiled(["flow"]) == ["flow"]
+    assert kernels.install(["flow"]) == ["stages.flow.kernel"]
+    assert kernels.is_cached("stages.flow.kernel") and stale.read_bytes() != _index("stages.flow.kernel", False)
+    # A current index for another CPU target (numba's own, from before the portable target): no cache here.
+    if os.environ.get("NUMBA_CPU_NAME"):
+        stale.write_bytes(_index("stages.flow.kernel", current=True, cpu="znver3"))
+        assert not kernels.is_cached("stages.flow.kernel")
+    # Another numba's index (a format this does not read) counts as a cache, as numba's own business.
+    other = kernels.cache_dir(kernels.module_file("stages.topology.constrained_path"))
+    other.mkdir(parents=True, exist_ok=True)
+    (other / f"constrained_path._search-1.{kernels.python_tag()}.nbi").write_bytes(
+        _index("stages.topology.constrained_path", current=False, numba="0.1.0"))
+    assert kernels.is_cached("stages.topology.constrained_path")
+    # An index numba cannot read is no cache either.
+    (other / f"constrained_path._search-1.{kernels.python_tag()}.nbi").write_bytes(b"not a pickle")
+    assert not kernels.is_cached("stages.topology.constrained_path")
 
 
 @pytest.mark.parametrize("change, why", [
@@ -263,7 +301,7 @@ def test_another_pythons_cache_in_the_same_folder_is_not_this_ones(tmp_path, mon
     _fake_shipped(tmp_path, monkeypatch)
     where = kernels.cache_dir(kernels.module_file("stages.flow.kernel"))
     where.mkdir(parents=True)
-    (where / "kernel._flow_kernel-273.py399.nbi").write_bytes(b"")
+    (where / "kernel._flow_kernel-273.py399.nbi").write_bytes(_index("stages.flow.kernel", current=True))
     assert not kernels.is_cached("stages.flow.kernel")
     assert kernels.install(["flow"]) == ["stages.flow.kernel"] and kernels.is_cached("stages.flow.kernel")
 
