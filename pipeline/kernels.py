@@ -22,7 +22,7 @@ import hashlib
 import io
 import json
 import os
-import pickle
+import pickletools
 import shutil
 import subprocess
 import sys
@@ -85,15 +85,31 @@ def is_cached(module: str) -> bool:
     for index in indexes:
         try:
             data = index.read_bytes()
-            version = pickle.Unpickler(io.BytesIO(data)).load()
-        except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError):
-            return False  # numba cannot read it either
+        except OSError:
+            return False
+        version = _index_version(data)
+        if version is None:  # not numba's index: numba cannot read it either
+            return False
         if version != _shipped_numba():
             continue
         digest = digest or hashlib.sha256(src.read_bytes()).digest()
         if digest not in data or cpu not in data:
             return False
     return bool(indexes)
+
+
+def _index_version(data: bytes) -> str | None:
+    """The numba version an index starts with (a pickled str), read from its opcodes without unpickling
+    anything (a cache file is data, not code to run); None when it does not start so."""
+    try:
+        for op, arg, _ in pickletools.genops(io.BytesIO(data)):
+            if op.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE"):
+                return arg
+            if op.name not in ("PROTO", "FRAME"):
+                return None
+    except Exception:  # malformed opcodes raise ValueError and others
+        return None
+    return None
 
 
 @functools.lru_cache(maxsize=1)

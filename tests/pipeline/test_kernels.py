@@ -220,9 +220,12 @@ def test_an_index_from_before_the_source_changed_is_no_cache(tmp_path, monkeypat
     (other / f"constrained_path._search-1.{kernels.python_tag()}.nbi").write_bytes(
         _index("stages.topology.constrained_path", current=False, numba="0.1.0"))
     assert kernels.is_cached("stages.topology.constrained_path")
-    # An index numba cannot read is no cache either.
-    (other / f"constrained_path._search-1.{kernels.python_tag()}.nbi").write_bytes(b"not a pickle")
-    assert not kernels.is_cached("stages.topology.constrained_path")
+    # An index numba cannot read is no cache either, and a pickle that would run code is only read.
+    marker = tmp_path / "ran"
+    for junk in (b"not a pickle", b"", f"cbuiltins\nopen\n(S'{marker}'\nS'w'\ntR.".encode()):
+        (other / f"constrained_path._search-1.{kernels.python_tag()}.nbi").write_bytes(junk)
+        assert not kernels.is_cached("stages.topology.constrained_path")
+    assert not marker.exists()
 
 
 @pytest.mark.parametrize("change, why", [
