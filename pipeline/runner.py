@@ -637,11 +637,13 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     if pending:
         todo = {t.stage for tasks in pending for t in tasks}
         sync = cluster_mode(runtime, pending) == "sync"
-        if runtime["shipped_kernels"]:
-            kernels.install(sorted(todo))
-        if on_compile is not None and warmup.uncompiled(sorted(todo)):
-            on_compile("runtime.shipped_kernels=false" if not runtime["shipped_kernels"]
-                       else kernels.why_compiled(sorted(todo)))
+        # numba's cache is looked at once when every kernel is in it (each run but a first).
+        cold = warmup.uncompiled(sorted(todo))
+        if cold and runtime["shipped_kernels"]:
+            kernels.install(cold)
+            cold = warmup.uncompiled(cold)
+        if on_compile is not None and cold:
+            on_compile(kernels.why_compiled(cold) if runtime["shipped_kernels"] else "runtime.shipped_kernels=false")
         if sync:
             # One image in-process leaves a core idle: its graph and flow kernels (first run only)
             # compile there meanwhile. Started before the code check below (~0.7 s of imports): the
