@@ -41,6 +41,53 @@ SHIPPED = Path(__file__).resolve().with_name("compiled_kernels")
 MANIFEST = "manifest.json"
 
 
+#: The numba whose cache loading :func:`load_without_registries` was checked on (it replaces one
+#: method of numba's private ``Cache`` class per kernel).
+QUICK_LOAD_NUMBA = "0.68.1"
+_QUICK_LOADS: set[str] = set()
+
+
+def load_without_registries(stage: str) -> None:
+    """Let the cached kernels of ``stage`` load without numba's registries (once per module and process).
+
+    Before it loads a cached kernel, numba refreshes its CPU target: it imports the implementations
+    of everything it could compile (~330 modules, scipy.linalg among them), which only compiling
+    needs: 0.5 s of a λ re-run's flow and of the graph's first call in a default run
+    (stages/DECISIONS.md, engine). Loaded machine code needs numba's runtime (NRT) and the symbols
+    numba puts in LLVM's table: at import (its C helpers, in ``BaseContext``), when the target is
+    made (C math), when a parallel kernel is loaded (its ``reload_init``), and, of the registry
+    modules, only ``numba.cpython.hashing`` (the hash secrets), imported here. So each cached
+    dispatcher of the stage's kernel modules (:data:`KERNEL_MODULES`) gets a ``load_overload`` that
+    initialises NRT and loads; a kernel not in the cache compiles as before (numba's compiler
+    refreshes the target itself). Only with :data:`QUICK_LOAD_NUMBA`; another numba loads its own way.
+    """
+    for module in KERNEL_MODULES.get(stage, ()):
+        if module in _QUICK_LOADS:
+            continue
+        _QUICK_LOADS.add(module)
+        import importlib
+
+        import numba
+        from numba.core.caching import Cache
+        from numba.core.dispatcher import Dispatcher
+
+        if numba.__version__ != QUICK_LOAD_NUMBA:
+            continue
+        for obj in vars(importlib.import_module(module)).values():
+            if isinstance(obj, Dispatcher) and isinstance(obj._cache, Cache):
+                obj._cache.load_overload = functools.partial(_load_overload, obj._cache)
+
+
+def _load_overload(cache, sig, target_context):
+    """numba's ``Cache.load_overload`` without ``target_context.refresh()`` (:func:`load_without_registries`)."""
+    import numba.cpython.hashing  # noqa: F401 - puts the hash secrets' symbols into LLVM's table
+    from numba.core.runtime import rtsys
+
+    rtsys.initialize(target_context)
+    with cache._guard_against_spurious_io_errors():
+        return cache._load_overload(sig, target_context)
+
+
 def module_file(module: str) -> Path:
     """The source file of a kernel module, as Python names it (so as numba does), without running it."""
     return Path(find_spec(module).origin)

@@ -26,6 +26,9 @@ _CHECK = r"""
 import gc, json, sys
 import stages  # first, as polyvec's commands do: it sets numba's CPU target before numba reads it
 import numpy as np
+from pipeline import kernels
+for stage in kernels.KERNEL_MODULES:   # as the engine's tasks do
+    kernels.load_without_registries(stage)
 from numba.core.dispatcher import Dispatcher
 from pipeline.registry import default_config as cfg
 from stages import graph, prep, synthetic
@@ -55,6 +58,7 @@ for o in gc.get_objects():
         s = o.stats
         out[o.py_func.__name__] = [sum(s.cache_hits.values()), sum(s.cache_misses.values())]
 print(json.dumps(out))
+print(json.dumps({"registries": "numba.np.polynomial.polynomial_core" in sys.modules}))
 """
 
 
@@ -110,7 +114,8 @@ def _load_check(tmp_path: Path, shipped: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", _CHECK], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr
-    counts = json.loads(proc.stdout.strip().splitlines()[-1])
+    *_, counts, loaded = map(json.loads, proc.stdout.strip().splitlines())
+    assert not loaded["registries"]   # every kernel loaded without numba's registries
     # The entry kernels of tracing, cross-sections, the constrained walk and the flow; their helpers are
     # compiled into them.
     for name in ("_trace_all", "_build_sections", "_search", "_flow_kernel"):
@@ -315,3 +320,73 @@ def test_the_build_refuses_an_interpreter_without_the_same_numba(tmp_path):
                            sys.executable + "-nonexistent"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "does not run, or has no numba" in proc.stderr
     assert not (tmp_path / "built").exists()
+
+
+_TINY = """
+import numpy as np
+import numba
+
+
+@numba.njit(cache=True)
+def ramp(n):
+    out = np.empty(n)       # NRT's allocator: what a loaded kernel needs of numba's runtime
+    for i in range(n):
+        out[i] = 0.5 * i
+    return out
+"""
+_TINY_RUN = r"""
+import json, sys
+import stages
+from pipeline import kernels
+kernels.KERNEL_MODULES["tiny"] = ("tiny_kernels",)
+if sys.argv[1] == "quick":
+    kernels.load_without_registries("tiny")
+import tiny_kernels
+r = tiny_kernels.ramp(5)
+s = tiny_kernels.ramp.stats
+print(json.dumps({"ramp": r.tolist(), "hits": sum(s.cache_hits.values()), "misses": sum(s.cache_misses.values()),
+                  "registries": "numba.np.polynomial.polynomial_core" in sys.modules}))
+"""
+
+
+def test_a_cached_kernel_loads_without_numbas_registries_and_an_uncached_one_compiles(tmp_path):
+    """``kernels.load_without_registries``: numba loads a cached kernel without importing the
+    implementations it compiles with (~0.35 s of a λ re-run); a kernel not in the cache still compiles,
+    and the loaded one gives the same result."""
+    (tmp_path / "tiny_kernels.py").write_text(_TINY)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), PYTHONPATH=f"{tmp_path}{os.pathsep}{REPO}")
+
+    def run(mode):
+        proc = subprocess.run([sys.executable, "-c", _TINY_RUN, mode], cwd=REPO, env=env, capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    compiled = run("quick")               # an empty cache: compiled (numba refreshes its target to compile)
+    assert compiled["misses"] == 1 and compiled["registries"]
+    loaded = run("quick")
+    assert loaded["hits"] == 1 and not loaded["misses"] and not loaded["registries"]
+    assert loaded["ramp"] == compiled["ramp"] == [0.0, 0.5, 1.0, 1.5, 2.0]
+    plain = run("plain")                  # numba's own way: the registries come with the load
+    assert plain["hits"] == 1 and plain["registries"]
+
+
+def test_quick_loads_only_with_the_numba_they_were_checked_on(monkeypatch):
+    """Another numba than ``QUICK_LOAD_NUMBA`` loads its kernels its own way (the private method may differ)."""
+    import numba
+    from numba.core.caching import Cache
+
+    from stages.flow import kernel
+
+    cache = kernel._flow_kernel._cache
+    assert isinstance(cache, Cache)
+    if "load_overload" in vars(cache):    # set by a run earlier in this process
+        monkeypatch.delattr(cache, "load_overload")
+    monkeypatch.setattr(kernels, "_QUICK_LOADS", set())
+    monkeypatch.setattr(numba, "__version__", "0.0.0")
+    kernels.load_without_registries("flow")
+    assert "load_overload" not in vars(cache)
+    monkeypatch.setattr(numba, "__version__", kernels.QUICK_LOAD_NUMBA)
+    monkeypatch.setattr(kernels, "_QUICK_LOADS", set())
+    kernels.load_without_registries("flow")
+    assert "load_overload" in vars(cache)
