@@ -26,11 +26,12 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from pipeline import kernels, warmup
-from pipeline.child import CHILD_STAGES, THREAD_ENV, ChildTasks, sigint_held, take_early
 from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage, height
 from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
 
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
 
 
 @dataclass(frozen=True)
@@ -455,6 +456,43 @@ _CLIENT: Any = None
 _CLIENT_SPEC: tuple | None = None
 
 
+@contextmanager
+def _sigint_held():
+    """Ctrl-C held back while this thread starts worker processes, then raised once.
+
+    SIGINT is blocked in this thread, so that the processes it starts and the threads it starts
+    meanwhile (dask's event loop, which starts the nannies) inherit it blocked: the terminal sends
+    Ctrl-C to the whole process group, and each worker would print its own tracebacks; the driver
+    reports the interrupt once and shuts them down. A Ctrl-C pressed meanwhile (pending, or taken by
+    an older thread of this process and recorded by a handler that only notes it) is raised as
+    KeyboardInterrupt when the block ends. SIGINT used to be *ignored* here, which the workers
+    inherited as well but which dropped a Ctrl-C pressed while a local cluster started: a folder's
+    run went on to its end (stages/DECISIONS.md, engine). Elsewhere than the main thread, a no-op.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    # multiprocessing starts its resource tracker at the first spawn and *unblocks* SIGINT in the
+    # spawning thread afterwards: started before the block, it leaves the block alone
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    pressed = []
+    handler = signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        if signal.SIGINT in signal.sigpending():
+            signal.sigwait({signal.SIGINT})
+            pressed.append(signal.SIGINT)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        # None: a handler not set from Python (embedding); Python's own is the sensible one back
+        signal.signal(signal.SIGINT, handler if handler is not None else signal.default_int_handler)
+    if pressed and handler is not signal.SIG_IGN:
+        raise KeyboardInterrupt
+
+
 def get_client(runtime: dict):
     """A dask.distributed client: a local cluster of single-threaded processes, or a remote scheduler.
 
@@ -478,7 +516,7 @@ def get_client(runtime: dict):
         return client
     # The workers leave Ctrl-C to the driver; one pressed meanwhile is raised once the client is
     # registered, so that the usual clean-up (close_client) ends this cluster too.
-    with sigint_held():
+    with _sigint_held():
         # dashboard_address=":0": a free port. None means dask's default 8787, with a warning whenever
         # another dask runs on the machine.
         # Saturation inf: every task goes to a worker once it is ready, so that the workers run the
@@ -597,9 +635,6 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         if todo_final:
             pending.append(todo_final)
 
-    # The child `polyvec` started before its own imports (pipeline.child.start_early), if any:
-    # adopted below when this batch has tasks for it in this process, else ended now.
-    early = take_early()
     if pending:
         todo = {t.stage for tasks in pending for t in tasks}
         sync = cluster_mode(runtime, pending) == "sync"
@@ -618,13 +653,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         in_child = CHILD_STAGES if sync and runtime["keypoints_process"] else ()
         # The child starts before the code check below, so that its own imports (torch) and the
         # networks' weights load on the other core meanwhile (stages/DECISIONS.md, engine).
-        child = None
-        if todo & set(in_child):
-            configs = {name: stage_config(cfg, name) for name in in_child}
-            child = early.adopt(configs) if early is not None else ChildTasks(in_child, configs)
-        elif early is not None:   # nothing for it: ended before the work starts
-            early.close(kill=True)
-            early.join()
+        child = (_ChildTasks(in_child, {name: stage_config(cfg, name) for name in in_child})
+                 if todo & set(in_child) else None)
         try:
             # Only now the code of the stages with work to do is imported (a stored artifact needs none).
             for spec in stages:
@@ -644,9 +674,6 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
                 child.close(kill=True)
                 child.join()
             warmup.stop()  # nothing to stop unless in-process warm-ups were started
-    elif early is not None:   # every artifact stored
-        early.close(kill=True)
-        early.join()
     batch.wall_s = time.perf_counter() - t0
     return batch
 
@@ -683,6 +710,11 @@ def _prep_pixels(store_url: str, key: str) -> int | None:
         return None
 
 
+#: Stages an in-process run computes in its child process (``runtime.keypoints_process``): the
+#: keypoints beside the field and graph, then the field's extension, which only the flow reads —
+#: off the field → graph path of this process (stages/DECISIONS.md, engine).
+CHILD_STAGES = ("keypoints", "extension")
+
 #: Tasks the in-process scheduler runs at once (threads): an image's keypoints beside its field and
 #: graph, which need only prep (torch, scipy and the graph kernels release the GIL in their work).
 SYNC_THREADS = 2
@@ -692,13 +724,92 @@ SYNC_THREADS = 2
 SYNC_PARALLEL_MAX_PIXELS = 4_000_000
 
 
+class _ChildTasks:
+    """A child process that runs the in-process scheduler's tasks of some stages (:data:`CHILD_STAGES`).
+
+    Why: beside a keypoints thread (torch's import, then the network) the field and graph of the
+    same drawing took 1.5× their time alone (the GIL and the interpreter between numpy calls), beside
+    a keypoints process hardly more (stages/DECISIONS.md, engine). The child is spawned at once, with
+    SIGINT blocked (Ctrl-C is the driver's to report, as for dask's workers), and imports the
+    stages' code and preloads what they use (``configs``: each stage's config section, for its
+    ``preload``) while the driver checks the code and runs prep.
+    """
+
+    def __init__(self, stages: tuple[str, ...], configs: dict[str, dict] | None = None):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        self.lock = threading.Lock()
+        self.proc = ctx.Process(target=_serve_tasks, args=(child, stages, configs or {}), daemon=True,
+                                name="polyvec-" + "-".join(stages))
+        try:
+            with _sigint_held():
+                self.proc.start()
+        except KeyboardInterrupt:   # pressed while it started: nobody else holds it to end it
+            self.proc.kill()
+            self.proc.join()
+            raise
+        finally:
+            child.close()
+
+    def run(self, task: "Task", store_url: str, upstream: tuple) -> "TaskResult":
+        """Run one task in the child; a lost child is this task's failure."""
+        with self.lock:
+            try:
+                self.conn.send((task, store_url, upstream))
+                return self.conn.recv()
+            except (EOFError, OSError) as exc:
+                return TaskResult(task.image, task.stage, task.key, "failed",
+                                  error=f"worker lost: {type(exc).__name__}: {exc}")
+
+    def close(self, kill: bool = False) -> None:
+        """Let the child leave (it skips its interpreter's teardown), or kill it; does not wait."""
+        if kill:
+            self.proc.kill()
+        else:
+            try:
+                self.conn.send(None)
+            except OSError:
+                pass
+        self.conn.close()
+
+    def join(self, timeout_s: float = 5.0) -> None:
+        """Wait for the closed child to be gone (killed past ``timeout_s``): no process outlives the run."""
+        self.proc.join(timeout_s)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
+
+
+def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict]) -> None:
+    """The child of :class:`_ChildTasks`: import the stages, preload what their tasks will use (a
+    stage's ``preload(section)``, given its config section), then run tasks until told to stop."""
+    os.environ.update(THREAD_ENV)
+    keep_network_memory()
+    for name in stages:
+        mod = BY_NAME[name].load()
+        if name in configs and "preload" in dir(mod):
+            try:
+                mod.preload(configs[name])
+            except Exception:  # noqa: BLE001 - the task itself will fail with the clear message
+                pass
+    try:
+        while (message := conn.recv()) is not None:
+            task, store_url, upstream = message
+            conn.send(execute(task, store_url, *upstream))
+    except (EOFError, OSError):  # the driver is gone (Ctrl-C): nothing to report to
+        pass
+    os._exit(0)
+
+
 def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
-              child: "ChildTasks | None" = None) -> None:
+              child: "_ChildTasks | None" = None) -> None:
     """Run the pending tasks in this process, at most :data:`SYNC_THREADS` at once, in DAG order.
 
     A task starts when the tasks of its image that it reads have finished; earlier images first. A
     task that starts with nothing else running or ready runs ``alone`` (numba may use its whole pool:
-    the flow). Tasks of the stages ``in_child`` run in one child process (:class:`ChildTasks`):
+    the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`):
     ``child`` when given (:func:`run_batch` starts it early), else one started here when such a task
     is pending. On Ctrl-C no new task starts; the running ones finish (each writes its artifact
     whole) and the child is killed.
@@ -708,7 +819,7 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     left_in_child = sum(t.stage in in_child for _, t in waiting)
     if child is None and left_in_child:
-        child = ChildTasks(in_child)
+        child = _ChildTasks(in_child)
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
     running: dict = {}

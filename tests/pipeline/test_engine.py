@@ -212,12 +212,12 @@ def test_the_keypoints_child_keeps_arrays_over_the_mmap_ceiling_in_its_heap():
 
 
 def test_the_keypoints_child_sets_its_heap_before_its_stages_load():
-    """The child (``serve_tasks``) keeps its network's memory from its first task on."""
+    """The child (``_serve_tasks``) keeps its network's memory from its first task on."""
     import inspect
 
-    from pipeline.child import serve_tasks
+    from pipeline.runner import _serve_tasks
 
-    body = inspect.getsource(serve_tasks)
+    body = inspect.getsource(_serve_tasks)
     assert body.index("keep_network_memory()") < body.index("BY_NAME[name].load()")
 
 
@@ -589,7 +589,7 @@ def _logged_scheduler(monkeypatch, pixels, cost=None):
             pass
 
     monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
-    monkeypatch.setattr(runner, "ChildTasks", FakeChild)
+    monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
     monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
     tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
 
@@ -667,7 +667,7 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
 def test_the_keypoints_child_preloads_torch_and_the_networks_before_its_first_task(monkeypatch):
     """The child imports torch and loads the keypoints' weights and typing as soon as it starts (its
     first task used to pay ~1.1 s for them); a config its preload refuses is left to the task to report."""
-    from pipeline import child
+    from pipeline import runner
     from pipeline.registry import default_config
     from stages.keypoints import stage as kp
 
@@ -681,16 +681,16 @@ def test_the_keypoints_child_preloads_torch_and_the_networks_before_its_first_ta
     def leave(code):
         raise Exit(code)
 
-    monkeypatch.setattr(child.os, "_exit", leave)
-    monkeypatch.setattr(child, "THREAD_ENV", {})       # this process's environment stays as it is
+    monkeypatch.setattr(runner.os, "_exit", leave)
+    monkeypatch.setattr(runner, "THREAD_ENV", {})       # this process's environment stays as it is
     monkeypatch.setattr(kp, "_MODELS", {})
     monkeypatch.setattr(kp, "_TYPE_CLASSIFIERS", {})
     with pytest.raises(Exit):
-        child.serve_tasks(Conn(), ("keypoints", "extension"), {"keypoints": default_config("keypoints")})
+        runner._serve_tasks(Conn(), ("keypoints", "extension"), {"keypoints": default_config("keypoints")})
     assert len(kp._MODELS) == 1 and len(kp._TYPE_CLASSIFIERS) == 1 and "torch" in sys.modules
     kp._MODELS.clear()
     with pytest.raises(Exit):                              # an unknown key: no preload, no error here
-        child.serve_tasks(Conn(), ("keypoints",), {"keypoints": {**default_config("keypoints"), "bogus": 1}})
+        runner._serve_tasks(Conn(), ("keypoints",), {"keypoints": {**default_config("keypoints"), "bogus": 1}})
     assert not kp._MODELS
 
 
@@ -709,80 +709,3 @@ def test_a_failed_code_check_leaves_no_keypoints_child(tmp_path, images, compose
     with pytest.raises(registry.StageUnavailable, match="broken on purpose"):
         run_batch(images[:1], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync"))
     assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
-
-
-def _no_child_left():
-    import multiprocessing
-
-    return not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
-
-
-def test_the_early_child_is_adopted_by_the_run(tmp_path, compose_cfg, monkeypatch):
-    """``polyvec`` starts the keypoints child before its own imports (``child.start_early``); the run
-    hands it its config and computes the keypoints and the extension in it, with the same artifacts."""
-    import json
-
-    from pipeline import child
-
-    monkeypatch.setattr(child, "_EARLY", [])
-    image = tmp_path / "vee.png"
-    image.write_bytes(synthetic.vee(size=48, width=3).png_bytes())
-    child.start_early()
-    early_pid = child._EARLY[0].proc.pid
-    batch = run_batch([image], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync"))
-    assert all(r.status == "computed" for r in batch.results[str(image)].values())
-    pids = {p.parent.parent.parent.name: json.loads(p.read_text())["pid"] for p in (tmp_path / "store").glob("*/*/*/manifest.json")}
-    assert pids["keypoints"] == pids["extension"] == early_pid and pids["graph"] == os.getpid()
-    assert child.take_early() is None and _no_child_left()
-
-
-@pytest.mark.parametrize("override", ["cached", "runtime.keypoints_process=false"])
-def test_an_early_child_the_run_does_not_need_is_ended_before_the_work(tmp_path, compose_cfg, monkeypatch, override):
-    """Every artifact stored, or the keypoints computed in this process: the early child is ended at
-    once, and no process outlives the run."""
-    from pipeline import child, runner
-
-    monkeypatch.setattr(child, "_EARLY", [])
-    image = tmp_path / "vee.png"
-    image.write_bytes(synthetic.vee(size=48, width=3).png_bytes())
-    overrides = [f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=keypoints"]
-    if override == "cached":
-        run_batch([image], compose_cfg(*overrides))
-    else:
-        overrides.append(override)
-    child.start_early()
-    early = child._EARLY[0]
-    seen = []
-    real = runner.execute
-    monkeypatch.setattr(runner, "execute", lambda *a, **k: seen.append(early.proc.is_alive()) or real(*a, **k))
-    batch = run_batch([image], compose_cfg(*overrides))
-    assert all(r.status == ("cached" if override == "cached" else "computed")
-               for r in batch.results[str(image)].values())
-    assert not early.proc.is_alive() and not any(seen) and _no_child_left()
-
-
-def test_the_early_child_leaves_when_this_process_is_gone(monkeypatch):
-    """A forked child inherits this process's end of the pipe; it closes it, so that it sees this
-    process go (its read ends) instead of waiting for ever (a killed ``polyvec`` left it running)."""
-    from pipeline import child
-
-    monkeypatch.setattr(child, "_EARLY", [])
-    child.start_early()
-    early = child.take_early()
-    early.conn.close()        # as this process's death closes it: no message, no kill
-    early.proc.join(20)
-    assert not early.proc.is_alive() and early.proc.exitcode == 0
-
-
-def test_polyvec_starts_the_early_child_only_for_a_run(monkeypatch):
-    """``polyvec --help`` (and --cfg, --info …) runs no drawing: no child is started for it."""
-    from pipeline import child, cli, launch
-
-    started = []
-    monkeypatch.setattr(child, "start_early", lambda: started.append(True))
-    monkeypatch.setattr(cli, "main", lambda: None)
-    for argv, want in ((["--help"], False), (["--cfg", "job"], False), (["drawing.png", "flow.lam=0.5"], True)):
-        started.clear()
-        monkeypatch.setattr(sys, "argv", ["polyvec", *argv])
-        launch.main()
-        assert bool(started) == want, argv
