@@ -10,7 +10,8 @@ cache yet, :func:`install` copies that stage's shipped files into the folder whe
 Python, for the CPU target and platform this process compiles for (on a cluster joined by
 ``runtime.scheduler_address``, each worker copies them into its own machine's cache before its first
 task). numba then loads them, and checks the same things again itself. Otherwise nothing is copied and the kernels compile as before
-(:mod:`pipeline.warmup`). ``runtime.shipped_kernels=false`` turns the copy off.
+(:mod:`pipeline.warmup`). ``runtime.shipped_kernels=false`` turns the copy off. A task loads its
+stage's cached kernels without numba's registries (:func:`load_without_registries`).
 
 A developer who changes a kernel module runs ``python -m pipeline.kernels`` again (a test says when).
 """
@@ -51,8 +52,8 @@ def load_without_registries(stage: str) -> None:
     """Let the cached kernels of ``stage`` load without numba's registries (once per module and process).
 
     Before it loads a cached kernel, numba refreshes its CPU target: it imports the implementations
-    of everything it could compile (~330 modules, scipy.linalg among them), which only compiling
-    needs: 0.5 s of a λ re-run's flow and of the graph's first call in a default run
+    of everything it could compile (~330 modules in a bare process, scipy.linalg among them), which
+    only compiling needs: ~0.35 s of a λ re-run's flow and of the graph's first call in a default run
     (stages/DECISIONS.md, engine). Loaded machine code needs numba's runtime (NRT) and the symbols
     numba puts in LLVM's table: at import (its C helpers, in ``BaseContext``), when the target is
     made (C math), when a parallel kernel is loaded (its ``reload_init``), and, of the registry
@@ -61,18 +62,19 @@ def load_without_registries(stage: str) -> None:
     initialises NRT and loads; a kernel not in the cache compiles as before (numba's compiler
     refreshes the target itself). Only with :data:`QUICK_LOAD_NUMBA`; another numba loads its own way.
     """
-    for module in KERNEL_MODULES.get(stage, ()):
-        if module in _QUICK_LOADS:
-            continue
-        _QUICK_LOADS.add(module)
-        import importlib
+    modules = [m for m in KERNEL_MODULES.get(stage, ()) if m not in _QUICK_LOADS]
+    if not modules:
+        return
+    import importlib
 
-        import numba
-        from numba.core.caching import Cache
-        from numba.core.dispatcher import Dispatcher
+    import numba
+    from numba.core.caching import Cache
+    from numba.core.dispatcher import Dispatcher
 
-        if numba.__version__ != QUICK_LOAD_NUMBA:
-            continue
+    _QUICK_LOADS.update(modules)
+    if numba.__version__ != QUICK_LOAD_NUMBA:
+        return
+    for module in modules:
         for obj in vars(importlib.import_module(module)).values():
             if isinstance(obj, Dispatcher) and isinstance(obj._cache, Cache):
                 obj._cache.load_overload = functools.partial(_load_overload, obj._cache)
