@@ -21,6 +21,7 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
+from stages.arrays import sorted_unique
 from stages.geometry import arc_length, point_at_arc, turn_deg
 from stages.topology import TopologyConfig
 from stages.topology.allowed_paths import component_subgraph, enumerate_allowed_paths, subgraph_chains
@@ -421,7 +422,7 @@ def candidate_paths(conf: TopologyConfig, mask: np.ndarray, roots: np.ndarray, v
         term = ex.terminals[c]
         ends = [term[int(vs[0])], term[int(vs[-1])]]
         eids = ex.edge_ids(vs[:-1], vs[1:])
-        px = np.unique(gather(ex.cov.pix_flat, ex.cov.pix_off, eids))
+        px = sorted_unique(gather(ex.cov.pix_flat, ex.cov.pix_off, eids))
         coverage.append(ex.pixel_flat[px])
         xy = g.xy[vs].copy()
         # A stroke running past an endpoint keypoint keeps its own position there (only the stroke
