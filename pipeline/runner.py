@@ -678,22 +678,32 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     return batch
 
 
+#: ``runtime.cluster: auto`` runs a batch in-process when at most this many images have work left
+#: (and ``runtime.workers`` is at most :data:`SYNC_THREADS`): two to four 512² drawings 7.0–15.9 s
+#: in-process against 11.0–17.4 s on two local workers, four scanned ones 20.9 s against 24.6–26.1 s;
+#: six to eight about even, twelve 5 % slower (stages/DECISIONS.md, engine).
+SYNC_MAX_IMAGES = 4
+
+
 def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     """``sync`` or ``local`` (dask) for this batch's pending tasks.
 
-    ``runtime.cluster: auto`` runs in-process when only one image has work left — a first run of one
-    drawing, or a λ / time-step re-run (flow → select → export) — because starting worker processes
-    costs more than running its keypoints beside its field gains (penguin 500×714 from an empty
-    store: 14.9 s on a local cluster, 10.9 s in-process; in-process, the keypoints now run in a
-    thread beside the field and graph: :func:`_run_sync`); with two images or more, and always with a
+    ``runtime.cluster: auto`` runs in-process when at most :data:`SYNC_MAX_IMAGES` images have work
+    left — one drawing, a λ / time-step re-run (flow → select → export), a few drawings — and
+    ``runtime.workers`` asks for no more processes than the in-process scheduler's threads: worker
+    processes each import torch, numba and the stages (~4 CPU-s apiece) and hand tasks over through
+    dask, which a few drawings do not repay; the in-process scheduler already runs two tasks at once
+    beside its keypoints child (:func:`_run_sync`). With more images, more workers, and always with a
     ``scheduler_address``, it uses dask.
     """
     mode = runtime["cluster"]
     if mode != "auto":
         return mode
-    if runtime.get("scheduler_address") or len(pending) > 1:
+    if runtime.get("scheduler_address"):
         return "local"
-    return "sync"
+    if len(pending) <= 1 or (len(pending) <= SYNC_MAX_IMAGES and int(runtime["workers"]) <= SYNC_THREADS):
+        return "sync"
+    return "local"
 
 
 def _needed(t: Task, done: dict[str, TaskResult]) -> list[TaskResult]:

@@ -304,21 +304,28 @@ def test_until_and_unknown_stage():
         active_stages("nonsense")
 
 
-def test_auto_cluster_runs_one_image_in_process_and_several_on_dask():
+def test_auto_cluster_runs_a_few_images_in_process_and_more_on_dask():
     from types import SimpleNamespace
 
-    from pipeline.runner import cluster_mode
+    from pipeline.runner import SYNC_MAX_IMAGES, cluster_mode
 
     def tasks(*stages):
         return [SimpleNamespace(stage=s) for s in stages]
 
-    auto = {"cluster": "auto", "scheduler_address": None}
+    auto = {"cluster": "auto", "scheduler_address": None, "workers": 2}
     # A λ re-run of one image: flow → select → export is a chain, nothing can run side by side.
     assert cluster_mode(auto, [tasks("flow", "select", "export")]) == "sync"
     # A first run of one image: keypoints and field could run side by side, but starting the workers
     # costs more than that gains.
     assert cluster_mode(auto, [tasks("prep", "keypoints", "field", "graph")]) == "sync"
-    assert cluster_mode(auto, [tasks("flow"), tasks("flow")]) == "local"  # two images
+    # A few drawings: the workers' start and imports cost more than they gain (2-4 drawings 12-37 %
+    # slower on two workers); more: dask's two processes run them faster.
+    assert SYNC_MAX_IMAGES == 4
+    assert cluster_mode(auto, [tasks("prep", "keypoints")] * 4) == "sync"
+    assert cluster_mode(auto, [tasks("prep", "keypoints")] * 5) == "local"
+    # ... unless more workers are asked for than the in-process scheduler's two threads
+    assert cluster_mode(auto | {"workers": 4}, [tasks("flow"), tasks("flow")]) == "local"
+    assert cluster_mode(auto | {"workers": 4}, [tasks("flow")]) == "sync"
     assert cluster_mode(auto | {"scheduler_address": "tcp://h:1"}, [tasks("flow")]) == "local"
     assert cluster_mode({"cluster": "sync"}, [tasks("prep", "keypoints", "field")]) == "sync"
     assert cluster_mode({"cluster": "local"}, [tasks("flow")]) == "local"
