@@ -42,9 +42,6 @@ SHIPPED = Path(__file__).resolve().with_name("compiled_kernels")
 MANIFEST = "manifest.json"
 
 
-#: The numba whose cache loading :func:`load_without_registries` was checked on (it replaces one
-#: method of numba's private ``Cache`` class per kernel).
-QUICK_LOAD_NUMBA = "0.68.1"
 _QUICK_LOADS: set[str] = set()
 
 
@@ -60,7 +57,9 @@ def load_without_registries(stage: str) -> None:
     modules, only ``numba.cpython.hashing`` (the hash secrets), imported here. So each cached
     dispatcher of the stage's kernel modules (:data:`KERNEL_MODULES`) gets a ``load_overload`` that
     initialises NRT and loads; a kernel not in the cache compiles as before (numba's compiler
-    refreshes the target itself). Only with :data:`QUICK_LOAD_NUMBA`; another numba loads its own way.
+    refreshes the target itself). It replaces a method of numba's private ``Cache`` class, so only
+    with the numba the shipped kernels were built by (the pinned one, which the tests load them with);
+    another numba loads its own way.
     """
     modules = [m for m in KERNEL_MODULES.get(stage, ()) if m not in _QUICK_LOADS]
     if not modules:
@@ -72,7 +71,7 @@ def load_without_registries(stage: str) -> None:
     from numba.core.dispatcher import Dispatcher
 
     _QUICK_LOADS.update(modules)
-    if numba.__version__ != QUICK_LOAD_NUMBA:
+    if numba.__version__ != _shipped_numba():
         return
     for module in modules:
         for obj in vars(importlib.import_module(module)).values():
@@ -199,7 +198,7 @@ def _manifest(shipped: Path | None) -> dict | None:
         return None
 
 
-def _uncached(stages: list[str]) -> list[str]:
+def uncached_modules(stages: list[str]) -> list[str]:
     """The kernel modules of ``stages`` that numba has no cache of (:func:`is_cached`)."""
     return [m for stage in stages for m in KERNEL_MODULES.get(stage, ()) if not is_cached(m)]
 
@@ -231,7 +230,7 @@ def stale(manifest: dict, module: str) -> str:
 
 def why_compiled(stages: list[str], shipped: Path | None = None) -> str:
     """Why the uncached kernels of ``stages`` are compiled rather than copied, in words (``""``: all are cached)."""
-    modules = _uncached(stages)
+    modules = uncached_modules(stages)
     if not modules:
         return ""
     manifest = _manifest(shipped)
@@ -260,7 +259,7 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
     list of str
         The kernel modules copied.
     """
-    modules = _uncached(stages)
+    modules = uncached_modules(stages)
     if not modules:  # the common case: nothing to read
         return []
     shipped = Path(shipped or SHIPPED)

@@ -638,7 +638,7 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
     if pending:
         todo = {t.stage for tasks in pending for t in tasks}
         sync = cluster_mode(runtime, pending) == "sync"
-        # numba's cache is looked at once when every kernel is in it (each run but a first).
+        # Every kernel in numba's cache (each run but a first): no copy and no second look here.
         cold = warmup.uncompiled(sorted(todo))
         if cold and runtime["shipped_kernels"]:
             kernels.install(cold)

@@ -40,7 +40,7 @@ _RUNNING: dict[str, subprocess.Popen] = {}
 
 def uncompiled(stages: list[str]) -> list[str]:
     """The stages of ``stages`` with numba kernels that have no on-disk cache yet (:func:`pipeline.kernels.is_cached`)."""
-    return [s for s in stages if not all(map(kernels.is_cached, kernels.KERNEL_MODULES.get(s, ())))]
+    return [s for s in stages if kernels.uncached_modules([s])]
 
 
 def start(stages: list[str]) -> list[str]:

@@ -372,7 +372,7 @@ def test_a_cached_kernel_loads_without_numbas_registries_and_an_uncached_one_com
 
 
 def test_quick_loads_only_with_the_numba_they_were_checked_on(monkeypatch):
-    """Another numba than ``QUICK_LOAD_NUMBA`` loads its kernels its own way (the private method may differ)."""
+    """Another numba than the shipped kernels' loads its kernels its own way (the private method may differ)."""
     import numba
     from numba.core.caching import Cache
 
@@ -386,7 +386,7 @@ def test_quick_loads_only_with_the_numba_they_were_checked_on(monkeypatch):
     monkeypatch.setattr(numba, "__version__", "0.0.0")
     kernels.load_without_registries("flow")
     assert "load_overload" not in vars(cache)
-    monkeypatch.setattr(numba, "__version__", kernels.QUICK_LOAD_NUMBA)
+    monkeypatch.setattr(numba, "__version__", kernels._shipped_numba())
     monkeypatch.setattr(kernels, "_QUICK_LOADS", set())
     kernels.load_without_registries("flow")
     assert "load_overload" in vars(cache)
