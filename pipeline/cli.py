@@ -15,15 +15,16 @@ import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
-
-from omegaconf import DictConfig
+from typing import TYPE_CHECKING, Callable
 
 from pipeline.registry import BY_NAME, CONF_DIR, StageUnavailable
 from pipeline.runner import (BatchResult, ClusterError, TaskResult, quiet_full_collections, reuse_freed_memory,
                              run_batch, validated_stages, write_outputs)
 from pipeline.store import ArtifactStore
 from stages.errors import InputError
+
+if TYPE_CHECKING:   # the keypoints child imports this module again (spawn): it needs no omegaconf
+    from omegaconf import DictConfig
 
 HELP = """usage: polyvec [PATH ...] [key=value ...] [-m] [--cfg job]
 

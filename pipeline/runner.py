@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterable
 
 from pipeline import kernels, warmup
 from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage, height
-from pipeline.store import ArtifactStore, artifact_key, hash_bytes, item_keys, library_versions
+from pipeline.store import ArtifactStore, adopt_library_versions, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -767,7 +767,9 @@ class _ChildTasks:
         """Run one task in the child; a lost child is this task's failure."""
         with self.lock:
             try:
-                self.conn.send((task, store_url, upstream))
+                # the driver's library versions (its first task looked them up): the child's manifests
+                # need the same, and it is spared the lookup on its critical path
+                self.conn.send((task, store_url, upstream, library_versions()))
                 return self.conn.recv()
             except (EOFError, OSError) as exc:
                 return TaskResult(task.image, task.stage, task.key, "failed",
@@ -806,7 +808,8 @@ def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict]) -> Non
                 pass
     try:
         while (message := conn.recv()) is not None:
-            task, store_url, upstream = message
+            task, store_url, upstream, versions = message
+            adopt_library_versions(versions)
             conn.send(execute(task, store_url, *upstream))
     except (EOFError, OSError):  # the driver is gone (Ctrl-C): nothing to report to
         pass

@@ -96,7 +96,30 @@ def item_keys(stage: str, version: str, context: Any, inputs: dict[str, str],
 
 
 def library_versions() -> dict[str, str]:
-    """Versions of the libraries whose behaviour can change results."""
+    """Versions of the libraries whose behaviour can change results (a copy of this process's record).
+
+    Looked up once per process: its libraries do not change while it runs, and every task's manifest
+    asks (``importlib.metadata`` parses the packages' metadata: 0.09–0.15 s the first time, 20–30 ms
+    each time after, in every task; stages/DECISIONS.md, engine).
+    """
+    global _VERSIONS
+    if _VERSIONS is None:
+        _VERSIONS = _installed_versions()
+    return dict(_VERSIONS)
+
+
+def adopt_library_versions(versions: dict[str, str]) -> None:
+    """Take as this process's :func:`library_versions` those its parent found: a process spawned from
+    the same interpreter and installation (the keypoints child), which is spared the lookup."""
+    global _VERSIONS
+    if _VERSIONS is None:
+        _VERSIONS = dict(versions)
+
+
+_VERSIONS: dict[str, str] | None = None
+
+
+def _installed_versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {}

@@ -15,7 +15,9 @@ Choices made on purpose
   no pixel of the dilated band are skipped (their output is zeroed anyway), so 512-px tiles pay on
   a large sparse scan what 1024-px ones would not skip (4× elephant, 2000×3012: 40 → 22 s, the same
   keypoints to 0.05 px).
-* **Peaks**: ``skimage.feature.peak_local_max`` on H1 with ``threshold`` (authors 0.5) and
+* **Peaks**: the peaks of ``skimage.feature.peak_local_max`` (the authors' NMS; :func:`local_peaks`,
+  the same points found without importing skimage and scipy.spatial in the keypoints process) on H1
+  with ``threshold`` (authors 0.5) and
   ``min_distance`` (authors 1, which lets duplicate peaks 2 px apart through; 3 by default), only
   within ``band_dilation`` px of the narrow band: the loss only ever saw the band, so the heatmaps
   are meaningless off it — they are zeroed there before NMS (and in the artifact). Positions are refined to sub-pixel by a parabola through the 3×3 neighbourhood
@@ -31,7 +33,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 from scipy import ndimage
-from skimage.feature import peak_local_max
 
 from stages.keypoints import VIEWS
 from stages.keypoints.codes import TYPE_CODES
@@ -177,7 +178,7 @@ def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
     threshold : float
         Minimum H1 value of a peak.
     min_distance : int
-        Peaks are separated by at least this many pixels (Chebyshev; ``peak_local_max``).
+        Peaks are separated by at least this many pixels (Chebyshev; :func:`local_peaks`).
     band : numpy.ndarray, optional
         bool (H, W): peaks outside it are discarded.
     subpixel : bool
@@ -197,8 +198,7 @@ def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
         # Mask before NMS: H1 is untrained off the band, and a high value there would suppress
         # the real peaks within min_distance.
         h1 = np.where(band, h1, 0.0)
-    coords = peak_local_max(h1, min_distance=max(int(min_distance), 1), threshold_abs=threshold,
-                            exclude_border=False)
+    coords = local_peaks(h1, max(int(min_distance), 1), threshold)
     if len(coords) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, np.int8), np.zeros(0, np.float32)
     i, j = coords[:, 0], coords[:, 1]
@@ -215,6 +215,72 @@ def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
     types = np.asarray(TYPE_CODES, np.int8)[cls]
     order = np.argsort(-h1[i, j], kind="stable")
     return (yx[order][:, ::-1].astype(np.float32), types[order], h1[i, j][order].astype(np.float32))
+
+
+def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.ndarray:
+    """The local maxima of ``image`` above ``threshold``, at least ``min_distance`` apart: the points
+    ``skimage.feature.peak_local_max(image, min_distance, threshold_abs=threshold, exclude_border=False)``
+    returns, in its order (highest first, ties in row-major order).
+
+    A pixel is a candidate where it equals the maximum of its (2·``min_distance`` + 1)² window (the
+    image's edge repeated) and exceeds ``threshold``; none where every pixel is (a constant image).
+    Candidates are taken highest first and each one accepted removes the later ones closer than
+    ``min_distance`` (Chebyshev). Written here rather than imported: ``skimage.feature`` pulls
+    ``scipy.spatial`` (0.2 s) into the keypoints process, whose start is the critical path of a small
+    drawing (stages/DECISIONS.md, keypoints); ``tests/stages/test_keypoints.py`` holds it to skimage's
+    result.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D float array (H1).
+    min_distance : int
+        At least 1.
+    threshold : float
+        Candidates must be strictly greater.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 (N, 2) (row, column).
+    """
+    image = np.asarray(image)
+    if image.size == 1:
+        mask = image > threshold
+    else:
+        mask = image == ndimage.maximum_filter(image, size=2 * min_distance + 1, mode="nearest")
+        if mask.all():  # a constant image has no peak
+            mask[:] = False
+        mask &= image > threshold
+    coords = np.argwhere(mask)
+    coords = coords[np.argsort(-image[mask], kind="stable")]
+    if min_distance <= 1 or len(coords) < 2:
+        return coords.astype(np.int64)
+    # The later candidates within Chebyshev distance < min_distance of each one, found by looking up
+    # each offset of that window in an image of candidate ranks: linear in the candidates.
+    k = len(coords)
+    rank = np.full(image.shape, -1, np.int64)
+    rank[coords[:, 0], coords[:, 1]] = np.arange(k)
+    r = min_distance - 1
+    firsts, seconds = [], []
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            y, x = coords[:, 0] + dy, coords[:, 1] + dx
+            ok = (y >= 0) & (y < image.shape[0]) & (x >= 0) & (x < image.shape[1])
+            other = np.full(k, -1, np.int64)
+            other[ok] = rank[y[ok], x[ok]]
+            later = other > np.arange(k)
+            firsts.append(np.flatnonzero(later))
+            seconds.append(other[later])
+    first, second = np.concatenate(firsts), np.concatenate(seconds)
+    order = np.argsort(first, kind="stable")
+    second = second[order]
+    bounds = np.searchsorted(first[order], np.arange(k + 1))
+    alive = np.ones(k, bool)
+    for q in range(k):   # highest first: an accepted candidate removes its later neighbours
+        if alive[q]:
+            alive[second[bounds[q]:bounds[q + 1]]] = False
+    return coords[alive].astype(np.int64)
 
 
 def dilate_band(mask: np.ndarray, radius: int) -> np.ndarray:

@@ -162,3 +162,27 @@ def test_a_pack_lookup_reads_the_index_and_the_wanted_results_only():
     got = read_pack(Counting(raw), {"kb"})
     assert list(got) == ["kb"] and np.array_equal(got["kb"]["curve"], np.ones((3, 2)))
     assert Counting.n < len(raw) // 10
+
+
+def test_library_versions_are_looked_up_once_per_process_or_taken_from_the_parent(monkeypatch):
+    """Every task's manifest records the libraries' versions: importlib.metadata is asked once per
+    process (20–30 ms a task otherwise), and a spawned child of the same installation (the keypoints
+    process) takes its parent's record instead of asking; a record already made is not replaced."""
+    import importlib.metadata as md
+
+    from pipeline import store as store_mod
+
+    calls = []
+    real = md.version
+    monkeypatch.setattr(md, "version", lambda name: calls.append(name) or real(name))
+    monkeypatch.setattr(store_mod, "_VERSIONS", None)
+    first = store_mod.library_versions()
+    assert first["numpy"] == np.__version__ and len(calls) == 7
+    first["numpy"] = "changed by a caller"
+    assert store_mod.library_versions()["numpy"] == np.__version__ and len(calls) == 7
+
+    monkeypatch.setattr(store_mod, "_VERSIONS", None)
+    store_mod.adopt_library_versions({"numpy": "1.0"})
+    assert store_mod.library_versions() == {"numpy": "1.0"} and len(calls) == 7
+    store_mod.adopt_library_versions({"numpy": "2.0"})
+    assert store_mod.library_versions() == {"numpy": "1.0"}

@@ -566,3 +566,21 @@ def test_cross_section_finds_every_streamline_segment_it_crosses(angle):
             brute += [(int(c), round(float(q), 4)) for c, q in zip(cid[hit], (lid + b)[hit])]
     assert len(found) >= 7
     assert found == sorted(brute)
+
+
+def test_each_edge_keeps_the_streamline_it_came_from():
+    """The streamline of each final edge is looked up among the streamline edges whichever way the
+    edge is written; the joins added across singularities (not among them) get −1."""
+    from stages.graph.stage import edge_streamlines
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        n = int(rng.integers(2, 40))
+        known = np.unique(np.sort(rng.integers(0, n, (int(rng.integers(0, 60)), 2)), axis=1), axis=0)
+        known = known[known[:, 0] < known[:, 1]]
+        curve = rng.integers(0, 100, len(known))
+        edges = rng.integers(0, n + 3, (int(rng.integers(0, 40)), 2))
+        lookup = {(int(a), int(b)): int(c) for (a, b), c in zip(known, curve)}
+        want = [lookup.get((int(min(a, b)), int(max(a, b))), -1) for a, b in edges]
+        got = edge_streamlines(known, curve, edges)
+        assert got.dtype == np.int32 and got.tolist() == want

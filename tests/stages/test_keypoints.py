@@ -197,6 +197,39 @@ def test_nms_threshold_distance_and_types():
     assert len(find_keypoints(hm, 0.5, 2, band=band)[0]) == 0
 
 
+def test_local_peaks_are_the_peaks_skimage_finds():
+    """The keypoints' NMS (written so that the keypoints process imports no skimage or scipy.spatial)
+    gives skimage's peak_local_max points in its order: plateaus and ties, constant images, one-pixel
+    and one-row images, thresholds met exactly, spacings 1–5, sparse and smooth maps."""
+    from scipy import ndimage
+    from skimage.feature import peak_local_max
+
+    from stages.keypoints.inference import local_peaks
+
+    rng = np.random.default_rng(0)
+    cases = 0
+    for t in range(400):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        kind = t % 5
+        if kind == 0:
+            img = rng.random((h, w)).astype(np.float32)
+        elif kind == 1:
+            img = (np.round(rng.random((h, w)) * 4) / 4).astype(np.float32)   # plateaus, values equal to 0.5
+        elif kind == 2:
+            img = np.full((h, w), rng.choice([0.0, 0.7]), np.float32)
+        elif kind == 3:
+            img = ndimage.gaussian_filter(rng.random((h, w)), rng.uniform(0.5, 3)).astype(np.float32)
+            img /= max(float(img.max()), 1e-9)
+        else:
+            img = ((rng.random((h, w)) < 0.05) * rng.random((h, w))).astype(np.float32)
+        for md in (1, 2, 3, 5):
+            thr = float(rng.choice([0.0, 0.3, 0.5]))
+            want = peak_local_max(img, min_distance=md, threshold_abs=thr, exclude_border=False)
+            got = local_peaks(img, md, thr)
+            assert got.shape == want.shape and np.array_equal(got, want), (t, md, thr)
+            cases += int(len(want) > 0)
+    assert cases > 500
+
 def test_junction_threshold_keeps_weaker_junctions_only():
     from stages.keypoints import keypoints_from_heatmaps
 
