@@ -259,8 +259,8 @@ def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.nd
     # The later candidates within Chebyshev distance < min_distance of each one, found by looking up
     # each offset of that window in an image of candidate ranks: linear in the candidates.
     k = len(coords)
-    rank = np.full(image.shape, -1, np.int64)
-    rank[coords[:, 0], coords[:, 1]] = np.arange(k)
+    rank = np.full(image.shape, -1, np.int32)   # int32: an image-sized array (35 MB for an A4 page)
+    rank[coords[:, 0], coords[:, 1]] = np.arange(k, dtype=np.int32)
     r = min_distance - 1
     firsts, seconds = [], []
     for dy in range(-r, r + 1):
