@@ -217,6 +217,11 @@ def find_keypoints(heatmaps: np.ndarray, threshold: float, min_distance: int,
     return (yx[order][:, ::-1].astype(np.float32), types[order], h1[i, j][order].astype(np.float32))
 
 
+#: :func:`local_peaks` looks the neighbours of each candidate up offset by offset for windows up to
+#: this half-width (13² offsets), beyond it by a KD-tree (an NMS distance a user set wide).
+MAX_WINDOW_LOOKUP = 6
+
+
 def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.ndarray:
     """The local maxima of ``image`` above ``threshold``, at least ``min_distance`` apart: the points
     ``skimage.feature.peak_local_max(image, min_distance, threshold_abs=threshold, exclude_border=False)``
@@ -225,7 +230,8 @@ def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.nd
     A pixel is a candidate where it equals the maximum of its (2·``min_distance`` + 1)² window (the
     image's edge repeated) and exceeds ``threshold``; none where every pixel is (a constant image).
     Candidates are taken highest first and each one accepted removes the later ones closer than
-    ``min_distance`` (Chebyshev). Written here rather than imported: ``skimage.feature`` pulls
+    ``min_distance`` (Chebyshev), found offset by offset in an image of candidate ranks (by a
+    KD-tree above :data:`MAX_WINDOW_LOOKUP`). Written here rather than imported: ``skimage.feature`` pulls
     ``scipy.spatial`` (0.2 s) into the keypoints process, whose start is the critical path of a small
     drawing (stages/DECISIONS.md, keypoints); ``tests/stages/test_keypoints.py`` holds it to skimage's
     result.
@@ -256,23 +262,30 @@ def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.nd
     coords = coords[np.argsort(-image[mask], kind="stable")]
     if min_distance <= 1 or len(coords) < 2:
         return coords.astype(np.int64)
-    # The later candidates within Chebyshev distance < min_distance of each one, found by looking up
-    # each offset of that window in an image of candidate ranks: linear in the candidates.
     k = len(coords)
-    rank = np.full(image.shape, -1, np.int32)   # int32: an image-sized array (35 MB for an A4 page)
-    rank[coords[:, 0], coords[:, 1]] = np.arange(k, dtype=np.int32)
     r = min_distance - 1
-    firsts, seconds = [], []
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            y, x = coords[:, 0] + dy, coords[:, 1] + dx
-            ok = (y >= 0) & (y < image.shape[0]) & (x >= 0) & (x < image.shape[1])
-            other = np.full(k, -1, np.int64)
-            other[ok] = rank[y[ok], x[ok]]
-            later = other > np.arange(k)
-            firsts.append(np.flatnonzero(later))
-            seconds.append(other[later])
-    first, second = np.concatenate(firsts), np.concatenate(seconds)
+    if r <= MAX_WINDOW_LOOKUP:
+        # The later candidates within Chebyshev distance < min_distance of each one, found by looking
+        # up each offset of that window in an image of candidate ranks: linear in the candidates.
+        rank = np.full(image.shape, -1, np.int32)   # int32: an image-sized array (35 MB for an A4 page)
+        rank[coords[:, 0], coords[:, 1]] = np.arange(k, dtype=np.int32)
+        firsts, seconds = [], []
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):
+                y, x = coords[:, 0] + dy, coords[:, 1] + dx
+                ok = (y >= 0) & (y < image.shape[0]) & (x >= 0) & (x < image.shape[1])
+                other = np.full(k, -1, np.int64)
+                other[ok] = rank[y[ok], x[ok]]
+                later = other > np.arange(k)
+                firsts.append(np.flatnonzero(later))
+                seconds.append(other[later])
+        first, second = np.concatenate(firsts), np.concatenate(seconds)
+    else:
+        # a wide window: its offsets would outnumber the candidates' neighbours; pairs from a KD-tree
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(coords).query_pairs(r, p=np.inf, output_type="ndarray")   # integer distances ≤ r
+        first, second = pairs.min(axis=1), pairs.max(axis=1)
     order = np.argsort(first, kind="stable")
     second = second[order]
     bounds = np.searchsorted(first[order], np.arange(k + 1))
