@@ -716,3 +716,25 @@ def test_a_failed_code_check_leaves_no_keypoints_child(tmp_path, images, compose
     with pytest.raises(registry.StageUnavailable, match="broken on purpose"):
         run_batch(images[:1], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync"))
     assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
+
+
+def test_the_keypoints_child_imports_no_more_than_its_stages_need():
+    """The keypoints child's start is a small drawing's critical path: what it imports — the CLI
+    module again (a spawned child re-imports the console script's ``pipeline.cli``), its stages' code
+    and what their ``preload`` loads — pulls in no skimage, scipy.spatial, omegaconf, Hydra, dask or
+    numba (0.1–0.3 s each that the child used to pay; stages/DECISIONS.md, engine)."""
+    script = (
+        "import sys, yaml\n"
+        "import pipeline.cli\n"
+        "from pipeline.runner import BY_NAME, CHILD_STAGES\n"
+        "from pipeline.registry import CONF_DIR\n"
+        "for name in CHILD_STAGES:\n"
+        "    mod = BY_NAME[name].load()\n"
+        "    mod.run\n"
+        "    if 'preload' in dir(mod):\n"
+        "        mod.preload(yaml.safe_load((CONF_DIR / name / 'default.yaml').read_text()))\n"
+        "print(' '.join(m for m in ('skimage', 'scipy.spatial', 'omegaconf', 'hydra', 'dask', 'numba')\n"
+        "               if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == []
