@@ -284,8 +284,8 @@ def local_peaks(image: np.ndarray, min_distance: int, threshold: float) -> np.nd
         # a wide window: its offsets would outnumber the candidates' neighbours; pairs from a KD-tree
         from scipy.spatial import cKDTree
 
-        pairs = cKDTree(coords).query_pairs(r, p=np.inf, output_type="ndarray")   # integer distances ≤ r
-        first, second = pairs.min(axis=1), pairs.max(axis=1)
+        pairs = cKDTree(coords).query_pairs(r, p=np.inf, output_type="ndarray")   # i < j, distances ≤ r
+        first, second = pairs[:, 0], pairs[:, 1]
     order = np.argsort(first, kind="stable")
     second = second[order]
     bounds = np.searchsorted(first[order], np.arange(k + 1))
