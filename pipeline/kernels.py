@@ -1,7 +1,7 @@
 """Compiled numba kernels shipped with the package, so that a fresh install does not compile them (issue 14).
 
-The graph, topology and flow stages run numba kernels (``@njit(cache=True)``) that numba compiles on
-first use and caches on disk: about 40 CPU seconds of a fresh install's first drawing. The package
+The field, graph, topology and flow stages run numba kernels (``@njit(cache=True)``) that numba compiles
+on first use and caches on disk: about 40 CPU seconds of a fresh install's first drawing. The package
 ships them compiled, as numba's own cache files, in ``pipeline/compiled_kernels/`` (one folder per
 kernel module and a ``manifest.json``), built by ``python -m pipeline.kernels`` for the CPU level of
 :func:`stages.portable_cpu_target` (x86-64-v3). Before a run computes a stage whose kernels have no
@@ -34,7 +34,7 @@ from pathlib import Path
 import stages  # noqa: F401  (sets numba's CPU target, stages.portable_cpu_target, which target() reads)
 
 #: The modules with numba kernels that are compiled on first use and cached on disk, per stage.
-KERNEL_MODULES = {"graph": ("stages.graph.trace", "stages.graph.cross_section"),
+KERNEL_MODULES = {"field": ("stages.field.kernel",), "graph": ("stages.graph.trace", "stages.graph.cross_section"),
                   "topology": ("stages.topology.constrained_path",), "flow": ("stages.flow.kernel",)}
 #: Where the compiled kernels are shipped: ``<module>/<numba's cache files>`` and the manifest.
 SHIPPED = Path(__file__).resolve().with_name("compiled_kernels")

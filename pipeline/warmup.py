@@ -12,7 +12,9 @@ waits for that stage's warm-up (:func:`wait`), so
 a kernel is never compiled twice at once; it then loads the kernels from the cache. A warm-up that
 fails or takes too long only costs the time it took: the stage then compiles what it still lacks.
 The warm-ups run in their own session (Ctrl-C in the terminal reaches only polyvec, which stops
-them) and are stopped when the batch ends.
+them) and are stopped when the batch ends. The field's three small kernels (~0.6 s) are not warmed:
+the field runs right after prep, before a warm-up could be done, and compiles them itself (the graph's
+warm-up, which runs the field on its way, compiles them too).
 """
 
 from __future__ import annotations

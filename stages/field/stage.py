@@ -27,7 +27,8 @@ Steps (in the order of :func:`compute_field`):
    (hand-written, :func:`_conjugate_gradient`; not scipy's ``cg``) with a Jacobi preconditioner, in
    real form: the real ``K = diag(w + α m) + β L`` acts on the four columns ``Re/Im c0, Re/Im c2`` in
    one sparse product and the diagonal coupling is added (:func:`_field_operator`; 1.8× fewer bytes
-   per product than the complex ``2n × 2n`` matrix).
+   per product than the complex ``2n × 2n`` matrix).  The sparse product and the CG's updates run as
+   numba loops (:mod:`stages.field.kernel`) that round as numpy and scipy do: the same bits, fewer passes.
 4. **Singularity loop.**  A 2×2 pixel cell is singular when walking round it the root pairing between
    neighbours (:func:`root_matching`) swaps an odd number of times; a pixel is singular when one of
    its (fully in-band) cells is.  Singular pixels get ``w = 0`` (which also raises the smart weights
@@ -224,7 +225,7 @@ def _rdot(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray | None, rtol: float,
-                        maxiter: int) -> tuple[np.ndarray, int, bool]:
+                        maxiter: int, compiled: bool = False) -> tuple[np.ndarray, int, bool]:
     """Jacobi-preconditioned conjugate gradients for a Hermitian PSD system in real form.
 
     The complex unknowns travel as real (n, m) arrays (``Re``/``Im`` columns): ``apply(X)`` is the
@@ -232,35 +233,46 @@ def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray |
     ``scipy.sparse.linalg.cg``: scipy's complex inner products call BLAS (``zdotc``), which
     multi-threads even 40k-vectors; on a busy 2-core machine that made the solve 5–20× slower
     (elephant: 17.7 s vs 3.5 s wall).  Here the inner products are numpy loops (:func:`_rdot`), and
-    only the sparse product does real work.  Stops when ``‖b − A x‖ ≤ rtol · ‖b‖``.  Zero diagonal
-    entries (rows without any term) get a preconditioner of 1; their unknowns keep the start value.
+    only the sparse product does real work.  ``compiled``: the updates of ``x, r, z`` and ``p`` run as
+    two numba loops (:mod:`stages.field.kernel`) instead of six numpy passes, with the same result to
+    the last bit; the field's solve uses them, the extension's (in the keypoints process, which loads
+    no numba) does not.  Stops when ``‖b − A x‖ ≤ rtol · ‖b‖``.  Zero diagonal entries (rows without
+    any term) get a preconditioner of 1; their unknowns keep the start value.
 
     Returns
     -------
     x, iterations, converged
     """
-    inv = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0)[:, None]
+    inv = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0)
     x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=b.dtype, copy=True)
     bnorm = np.sqrt(_rdot(b, b))
     if bnorm == 0.0:
         return np.zeros_like(b), 0, True
     r = b - apply(x) if x0 is not None else b.copy()
-    z = inv * r
+    z = inv[:, None] * r
     p = z.copy()
     tmp = np.empty_like(b)
     rz = _rdot(r, z)
     stop = rtol * bnorm
+    if compiled:
+        from stages.field.kernel import next_direction, step_solution
     for k in range(maxiter):
         if np.sqrt(_rdot(r, r)) <= stop:
             return x, k, True
         ap = apply(p)
         step = rz / _rdot(p, ap)
-        x += np.multiply(p, step, out=tmp)
-        r -= np.multiply(ap, step, out=tmp)
-        np.multiply(inv, r, out=z)
+        if compiled:
+            step_solution(x, r, z, p, ap, inv, step)
+        else:
+            x += np.multiply(p, step, out=tmp)
+            r -= np.multiply(ap, step, out=tmp)
+            np.multiply(inv[:, None], r, out=z)
         rz_new = _rdot(r, z)
-        p *= rz_new / rz
-        p += z
+        if compiled:
+            next_direction(p, z, rz_new / rz)
+        else:
+            p *= rz_new / rz
+            p += z
         rz = rz_new
     return x, maxiter, bool(np.sqrt(_rdot(r, r)) <= stop)
 
@@ -430,8 +442,31 @@ def _as_real(x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x).view(np.float64).copy()
 
 
-def _field_operator(k: sp.csr_matrix, off: np.ndarray):
-    """``X ↦ A X`` for the four real columns of ``[c0, c2]`` (see :func:`_assemble`)."""
+def _field_operator(k: sp.csr_matrix, off: np.ndarray, compiled: bool = False):
+    """``X ↦ A X`` for the four real columns of ``[c0, c2]`` (see :func:`_assemble`).
+
+    ``compiled``: the sparse product by a numba loop (:func:`stages.field.kernel.sparse_product`,
+    the same result to the last bit, without scipy's dispatch) and the coupling's complex products
+    (numpy's, as below) into buffers that each call overwrites (the CG reads a product before it
+    asks for the next).
+    """
+    if compiled:
+        from stages.field.kernel import sparse_product
+
+        off_conj = off.conj()
+        buffers: list[np.ndarray] = []
+
+        def apply_compiled(x: np.ndarray) -> np.ndarray:
+            if not buffers or buffers[0].shape != x.shape:
+                buffers[:] = [np.empty_like(x), np.empty(len(x), np.complex128)]
+            y, product = buffers
+            sparse_product(k.indptr, k.indices, k.data, x, y)
+            yc, xc = y.view(np.complex128), x.view(np.complex128)
+            yc[:, 0] += np.multiply(off, xc[:, 1], out=product)
+            yc[:, 1] += np.multiply(off_conj, xc[:, 0], out=product)
+            return y
+        return apply_compiled
+
     def apply(x: np.ndarray) -> np.ndarray:
         y = k @ x
         yc, xc = y.view(np.complex128), x.view(np.complex128)
@@ -492,8 +527,8 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
         for _ in range(max(1, cfg.max_singularity_iterations)):
             k, off, rhs = _assemble(mask, index, tau_b, w_cur, cfg)
             x0 = x if (cfg.warm_start and x is not None) else None
-            x, iters, info = _conjugate_gradient(_field_operator(k, off), k.diagonal(), rhs, x0,
-                                                 cfg.cg_rtol, maxiter)
+            x, iters, info = _conjugate_gradient(_field_operator(k, off, compiled=True), k.diagonal(), rhs, x0,
+                                                 cfg.cg_rtol, maxiter, compiled=True)
             stats["cg_iterations"].append(iters)
             stats["cg_converged"].append(info)
             stats["nonzeros"].append(2 * int(k.nnz) + 2 * n)  # of the complex 2n × 2n matrix

@@ -54,7 +54,7 @@ edits = BY_NAME["keypoint_edits"].load().run(cfg("keypoint_edits"), keypoints=kp
 topology.run(cfg("topology"), prep=p, keypoint_edits=edits, field=f, graph=g)
 out = {}
 for o in gc.get_objects():
-    if isinstance(o, Dispatcher) and o.py_func.__module__.split(".")[1] in ("graph", "topology", "flow"):
+    if isinstance(o, Dispatcher) and o.py_func.__module__.split(".")[1] in ("field", "graph", "topology", "flow"):
         s = o.stats
         out[o.py_func.__name__] = [sum(s.cache_hits.values()), sum(s.cache_misses.values())]
 print(json.dumps(out))
@@ -107,7 +107,7 @@ def _load_check(tmp_path: Path, shipped: Path) -> None:
     # A user's shell: no CPU target of numba's set (the pytest process set it; children inherit it).
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba-cache")
-    code = f"from pipeline import kernels, warmup; print(kernels.install(list(warmup.WARMED), {str(shipped)!r}))"
+    code = f"from pipeline import kernels; print(kernels.install(list(kernels.KERNEL_MODULES), {str(shipped)!r}))"
     copied = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
                             check=True).stdout
     assert sorted(eval(copied)) == MODULES
@@ -116,9 +116,10 @@ def _load_check(tmp_path: Path, shipped: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     *_, counts, loaded = map(json.loads, proc.stdout.strip().splitlines())
     assert not loaded["registries"]   # every kernel loaded without numba's registries
-    # The entry kernels of tracing, cross-sections, the constrained walk and the flow; their helpers are
-    # compiled into them.
-    for name in ("_trace_all", "_build_sections", "_search", "_flow_kernel"):
+    # The entry kernels of the field's solve, tracing, cross-sections, the constrained walk and the flow;
+    # their helpers are compiled into them.
+    for name in ("sparse_product", "step_solution", "next_direction", "_trace_all", "_build_sections", "_search",
+                 "_flow_kernel"):
         assert counts[name][0] >= 1, (name, counts)
     assert not {k: v for k, v in counts.items() if v[1]}, counts
 

@@ -237,6 +237,31 @@ def test_real_form_solve_equals_a_direct_complex_solve():
     assert np.abs(once["c0"][mask] - direct[:len(xc)]).max() < 1e-6 * np.abs(direct).max()
 
 
+def test_compiled_solve_steps_give_the_numpy_solve_to_the_last_bit(monkeypatch):
+    """The field's CG runs its sparse product and updates as numba loops (stages/field/kernel.py): the
+    same operations in the same order as numpy's and scipy's, so the same bits, solve after solve of the
+    singularity loop (and the artifact's arrays byte for byte)."""
+    from stages.field import stage as fs
+
+    d = synthetic.example_drawing()
+    mask = d.grey < THRESHOLD
+    compiled = _run(d.grey, mask)
+    operator, solve = fs._field_operator, fs._conjugate_gradient
+    monkeypatch.setattr(fs, "_field_operator", lambda k, off, compiled=False: operator(k, off))
+    monkeypatch.setattr(fs, "_conjugate_gradient", lambda *a, compiled=False: solve(*a))
+    plain = _run(d.grey, mask)
+    assert len(plain.data["cg_iterations"]) > 1          # several solves, warm-started
+    assert plain.data["cg_iterations"] == compiled.data["cg_iterations"]
+    for name, array in plain.arrays.items():
+        assert array.tobytes() == compiled.arrays[name].tobytes(), name
+    # The operator alone, on columns that are not a solve's: bit for bit too.
+    tau, gmag = fs.image_tangents(d.grey, 0.0)
+    k, off, _ = fs._assemble(mask, fs._region_index(mask), tau[mask], fs.coherence_weights(tau, gmag),
+                             field.FieldConfig(**CFG))
+    x = np.random.default_rng(0).standard_normal((int(mask.sum()), 4))
+    assert operator(k, off)(x).tobytes() == operator(k, off, compiled=True)(x).tobytes()
+
+
 @pytest.mark.parametrize("angle", [0.0, 90.0])
 def test_axis_aligned_strokes_put_the_tangent_first(angle):
     """The frame {x, y} is one polynomial for horizontal and vertical strokes: moduli tie exactly, and
