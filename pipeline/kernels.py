@@ -146,6 +146,48 @@ def is_cached(module: str) -> bool:
     return bool(indexes)
 
 
+def forget_stale(stages: list[str]) -> list[str]:
+    """Remove the cache files of ``stages``' kernel modules that were compiled from an older source.
+
+    numba names an index after its kernel and the kernel's line in the source. When an edit moves a
+    kernel (a ``git pull``, an upgrade in place), numba compiles it under the new name and never
+    opens the old index again; :func:`is_cached` would still find the old one, with its old source
+    digest, and call the module uncompiled at every run (the compile message and the warm-ups each
+    time). Only indexes of this Python, in the format of the shipped kernels' numba and without the
+    source's current digest are removed, with their data files: numba would refuse them anyway.
+
+    Returns
+    -------
+    list of str
+        The index files removed.
+    """
+    removed = []
+    for module in sorted({m for stage in stages for m in KERNEL_MODULES.get(stage, ())}):
+        src = module_file(module)
+        folder = cache_dir(src)
+        digest = None
+        for index in sorted(folder.glob(f"{src.stem}.*.{python_tag()}.nbi")):
+            try:
+                data = index.read_bytes()
+            except OSError:
+                continue
+            if _index_version(data) != _shipped_numba():
+                continue  # another numba's: its own business
+            digest = digest or hashlib.sha256(src.read_bytes()).digest()
+            if digest in data:
+                continue
+            stem = index.name[: -len(".nbi")]
+            try:
+                for data_file in folder.glob(f"{stem}.*.nbc"):
+                    if data_file.name[len(stem) + 1: -len(".nbc")].isdigit():
+                        data_file.unlink(missing_ok=True)
+                index.unlink(missing_ok=True)
+            except OSError:  # a folder it cannot write: numba cannot cache there either
+                continue
+            removed.append(index.name)
+    return removed
+
+
 def _index_version(data: bytes) -> str | None:
     """The numba version an index starts with (a pickled str), read from its opcodes without unpickling
     anything (a cache file is data, not code to run); None when it does not start so."""

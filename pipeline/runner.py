@@ -640,6 +640,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         sync = cluster_mode(runtime, pending) == "sync"
         # Every kernel in numba's cache (each run but a first): no copy and no second look here.
         cold = warmup.uncompiled(sorted(todo))
+        if cold and kernels.forget_stale(cold):  # indexes of kernels an edit moved: not a cache, not cold
+            cold = warmup.uncompiled(cold)
         if cold and runtime["shipped_kernels"]:
             kernels.install(cold)
             cold = warmup.uncompiled(cold)

@@ -234,6 +234,29 @@ def test_an_index_from_before_the_source_changed_is_no_cache(tmp_path, monkeypat
     assert not marker.exists()
 
 
+def test_the_index_of_a_kernel_an_edit_moved_is_removed_not_taken_for_an_uncompiled_module(tmp_path, monkeypatch):
+    """numba names an index after its kernel's line: once an edit moves the kernel, numba never opens the
+    old index again. Left in the folder, it made the module look uncompiled at every run (the compile
+    message and the warm-ups each time); it is removed with its data, another Python's is not."""
+    _fake_shipped(tmp_path, monkeypatch)
+    module, tag = "stages.flow.kernel", kernels.python_tag()
+    assert kernels.install(["flow"]) == [module] and kernels.is_cached(module)
+    where = kernels.cache_dir(kernels.module_file(module))
+    orphan, data = where / f"kernel._flow_kernel-250.{tag}.nbi", where / f"kernel._flow_kernel-250.{tag}.1.nbc"
+    orphan.write_bytes(_index(module, current=False))
+    data.write_bytes(b"machine code")
+    other = where / "kernel._flow_kernel-250.py399.nbi"
+    other.write_bytes(_index(module, current=False))
+    assert not kernels.is_cached(module) and warmup.uncompiled(["flow"]) == ["flow"]
+    assert kernels.forget_stale(["prep", "flow"]) == [orphan.name]
+    assert not orphan.exists() and not data.exists() and other.exists()
+    assert kernels.is_cached(module) and warmup.uncompiled(["flow"]) == []
+    assert kernels.forget_stale(["flow"]) == []
+    # The current kernels' own files are untouched.
+    assert sorted(p.name for p in where.glob(f"kernel.*.{tag}*")) == sorted(
+        n for n in json.loads((kernels.SHIPPED / "manifest.json").read_text())["files"][module] if f".{tag}." in n)
+
+
 @pytest.mark.parametrize("change, why", [
     ({"numba": "0.1.0"}, "the shipped ones are numba 0.1.0's, this is numba "),
     ({"pythons": ["py399"]}, "none are shipped for Python 3."),
