@@ -523,7 +523,11 @@ def get_client(runtime: dict):
         # engine's priorities (:func:`priority`); dask's default queues root tasks (prep) on the
         # scheduler and releases them only when a worker runs out of work. Our tasks return small
         # records (the artifacts go to the store), so the queue's memory guard is not needed.
-        with dask.config.set({"distributed.scheduler.worker-saturation": float("inf")}):
+        # No statistical profiler in the workers: it samples every thread's stack each 10 ms, under
+        # the GIL the task needs, for a dashboard page no one opens here (a worker's event-loop
+        # thread 0.9 -> 0.65 CPU-s in an 8-drawing batch; stages/DECISIONS.md, engine).
+        with dask.config.set({"distributed.scheduler.worker-saturation": float("inf"),
+                              "distributed.worker.profile.enabled": False}):
             cluster = LocalCluster(n_workers=int(runtime["workers"]), threads_per_worker=1, processes=True,
                                    dashboard_address=":0", memory_limit=runtime["memory_limit"],
                                    env=dict(THREAD_ENV), silence_logs=50)

@@ -116,7 +116,8 @@ def test_batch_priorities_start_images_in_order_and_end_on_short_tasks():
 
 def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, images, compose_cfg):
     """Once the batch is done, a local worker holding the stages' modules exits at once (os._exit after
-    the exit handlers): an object that only the interpreter's teardown would collect is never collected."""
+    the exit handlers): an object that only the interpreter's teardown would collect is never collected.
+    And it ran its tasks without dask's profiler."""
     from pipeline.runner import get_client
 
     marker_dir = tmp_path / "torn_down"
@@ -140,10 +141,14 @@ def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, imag
         batch = run_batch(images, cfg)
         client = get_client(cfg.runtime)
         pids = client.run(os.getpid)
+        # Nor does a worker run dask's statistical profiler (a stack sample of every thread each 10 ms,
+        # for a dashboard page; stages/DECISIONS.md, engine).
+        callbacks = client.run(lambda dask_worker: sorted(dask_worker.periodic_callbacks))
         client.run(plant)
     finally:
         close_client()
     assert not batch.failed_images
+    assert callbacks and all("heartbeat" in c and "profile" not in c for c in callbacks.values()), callbacks
     for pid in pids.values():  # gone, without a teardown
         for _ in range(100):
             try:
