@@ -172,6 +172,10 @@ def multirun_folder(out: Path) -> Path:
     return out
 
 
+#: Redraws a second of the live progress display (:class:`StageProgress`).
+REFRESH_PER_SECOND = 2
+
+
 class StageProgress:
     """rich progress: one bar per stage with computed / cached / failed counts."""
 
@@ -180,9 +184,12 @@ class StageProgress:
 
         self.enabled = enabled
         self.counts = {s: {"computed": 0, "cached": 0, "failed": 0, "skipped": 0} for s in stages}
+        # Two redraws a second, not rich's ten: each redraw renders every stage's row on a thread of
+        # this process, under the GIL its stages need (a drawing's default run in a terminal 0.1-0.6 s
+        # longer at ten; stages/DECISIONS.md, engine). A task's result still shows within half a second.
         self.progress = Progress(TextColumn("{task.description:>10}"), BarColumn(), MofNCompleteColumn(),
                                  TextColumn("{task.fields[status]}"), TimeElapsedColumn(),
-                                 disable=not enabled, transient=False)
+                                 disable=not enabled, transient=False, refresh_per_second=REFRESH_PER_SECOND)
         self.ids = {s: self.progress.add_task(s, total=n_images, status="") for s in stages}
 
     def __enter__(self):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -1071,3 +1072,40 @@ def test_repeated_commands_read_their_config_from_the_cache(tmp_path, cli, monke
         outs.append((tmp_path / out / "line.svg").read_text())
     assert len(set(outs)) == 1
     assert list((tmp_path / "cache" / "polyvec" / "config").glob("*.pkl"))
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="needs a pseudo-terminal")
+def test_in_a_terminal_the_progress_display_redraws_at_most_twice_a_second(tmp_path):
+    """Run in a terminal (a pseudo-terminal on stdin, stdout and stderr), `polyvec` shows one bar per
+    stage while it works, redrawn at most :data:`pipeline.cli.REFRESH_PER_SECOND` (2) times a second:
+    each redraw renders every row on a thread of the process whose stages need the GIL (rich's ten a
+    second made a drawing's run 0.1–0.6 s longer; stages/DECISIONS.md, engine)."""
+    import os
+    import pty
+    import subprocess
+    import time
+
+    from pipeline.cli import REFRESH_PER_SECOND
+
+    primary, secondary = pty.openpty()
+    started = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "runtime.until=field", "runtime.cluster=sync"],
+                            cwd=tmp_path, stdin=secondary, stdout=secondary, stderr=secondary,
+                            env=dict(os.environ, COLUMNS="100", TERM="xterm"))
+    os.close(secondary)
+    out = b""
+    while True:
+        try:
+            chunk = os.read(primary, 65536)
+        except OSError:  # the terminal's other side closed: the command is done
+            break
+        if not chunk:
+            break
+        out += chunk
+    os.close(primary)
+    assert proc.wait(timeout=600) == 0, out.decode(errors="replace")
+    wall = time.monotonic() - started
+    # One frame of the display per line like "     field ━━━━ 0/1 …" (the summary table has no bar).
+    frames = len(re.findall(r"     field \S*━+\S* \S*\d+/1", out.decode(errors="replace")))
+    assert frames >= 2, out.decode(errors="replace")             # it is shown, and redrawn
+    assert frames <= REFRESH_PER_SECOND * wall + 3, (frames, wall)
