@@ -116,6 +116,11 @@ def cache_dir(src: Path, environ=os.environ) -> Path:
     return Path(AppDirs(appname="numba", appauthor=False).user_cache_dir) / subpath
 
 
+def _indexes(src: Path) -> list[Path]:
+    """numba's index files of the kernels of source file ``src`` for this Python, sorted."""
+    return sorted(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"))
+
+
 def is_cached(module: str) -> bool:
     """Whether numba's cache folder holds a current index of each of ``module``'s kernels for this Python.
 
@@ -128,7 +133,7 @@ def is_cached(module: str) -> bool:
     index is taken as a cache.
     """
     src = module_file(module)
-    indexes = list(cache_dir(src).glob(f"{src.stem}.*.{python_tag()}.nbi"))
+    indexes = _indexes(src)
     digest, cpu = None, os.environ.get("NUMBA_CPU_NAME", "").encode()
     for index in indexes:
         try:
@@ -166,7 +171,7 @@ def forget_stale(stages: list[str]) -> list[str]:
         src = module_file(module)
         folder = cache_dir(src)
         digest = None
-        for index in sorted(folder.glob(f"{src.stem}.*.{python_tag()}.nbi")):
+        for index in _indexes(src):
             try:
                 data = index.read_bytes()
             except OSError:

@@ -251,28 +251,29 @@ def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray |
     r = b - apply(x) if x0 is not None else b.copy()
     z = inv[:, None] * r
     p = z.copy()
-    tmp = np.empty_like(b)
     rz = _rdot(r, z)
     stop = rtol * bnorm
     if compiled:
         from stages.field.kernel import next_direction, step_solution
+    else:
+        tmp = np.empty_like(b)
+
+        def step_solution(x, r, z, p, ap, inv, step):
+            x += np.multiply(p, step, out=tmp)
+            r -= np.multiply(ap, step, out=tmp)
+            np.multiply(inv[:, None], r, out=z)
+
+        def next_direction(p, z, beta):
+            p *= beta
+            p += z
     for k in range(maxiter):
         if np.sqrt(_rdot(r, r)) <= stop:
             return x, k, True
         ap = apply(p)
         step = rz / _rdot(p, ap)
-        if compiled:
-            step_solution(x, r, z, p, ap, inv, step)
-        else:
-            x += np.multiply(p, step, out=tmp)
-            r -= np.multiply(ap, step, out=tmp)
-            np.multiply(inv[:, None], r, out=z)
+        step_solution(x, r, z, p, ap, inv, step)
         rz_new = _rdot(r, z)
-        if compiled:
-            next_direction(p, z, rz_new / rz)
-        else:
-            p *= rz_new / rz
-            p += z
+        next_direction(p, z, rz_new / rz)
         rz = rz_new
     return x, maxiter, bool(np.sqrt(_rdot(r, r)) <= stop)
 
@@ -454,12 +455,9 @@ def _field_operator(k: sp.csr_matrix, off: np.ndarray, compiled: bool = False):
         from stages.field.kernel import sparse_product
 
         off_conj = off.conj()
-        buffers: list[np.ndarray] = []
+        y, product = np.empty((k.shape[0], 4)), np.empty(k.shape[0], np.complex128)
 
         def apply_compiled(x: np.ndarray) -> np.ndarray:
-            if not buffers or buffers[0].shape != x.shape:
-                buffers[:] = [np.empty_like(x), np.empty(len(x), np.complex128)]
-            y, product = buffers
             sparse_product(k.indptr, k.indices, k.data, x, y)
             yc, xc = y.view(np.complex128), x.view(np.complex128)
             yc[:, 0] += np.multiply(off, xc[:, 1], out=product)
