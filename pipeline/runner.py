@@ -660,7 +660,7 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         # The child starts before the code check below, so that its own imports (torch) and the
         # networks' weights load on the other core meanwhile (stages/DECISIONS.md, engine).
         child = (_ChildTasks(in_child, {name: stage_config(cfg, name) for name in in_child})
-                 if todo & set(in_child) else None)
+                 if todo & (set(in_child) - set(EITHER_STAGES)) else None)
         try:
             # Only now the code of the stages with work to do is imported (a stored artifact needs none).
             for spec in stages:
@@ -730,6 +730,10 @@ def _prep_pixels(store_url: str, key: str) -> int | None:
 #: keypoints beside the field and graph, then the field's extension, which only the flow reads —
 #: off the field → graph path of this process (stages/DECISIONS.md, engine).
 CHILD_STAGES = ("keypoints", "extension")
+#: Of those, the stages that need no torch: run on a thread of this process that would idle while the
+#: child is busy (a small drawing's graph ends before its keypoints, and its extension waited for
+#: them), and here alone when no other child stage has work (no child is started for them).
+EITHER_STAGES = ("extension",)
 
 #: Tasks the in-process scheduler runs at once (threads): an image's keypoints beside its field and
 #: graph, which need only prep (torch, scipy and the graph kernels release the GIL in their work).
@@ -830,14 +834,15 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
     task that starts with nothing else running or ready runs ``alone`` (numba may use its whole pool:
     the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`):
     ``child`` when given (:func:`run_batch` starts it early), else one started here when such a task
-    is pending. On Ctrl-C no new task starts; the running ones finish (each writes its artifact
-    whole) and the child is killed.
+    is pending; those of :data:`EITHER_STAGES` run here instead while the child is busy and this
+    process has nothing else to start, or when there is no child. On Ctrl-C no new task starts; the running ones finish (each
+    writes its artifact whole) and the child is killed.
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
     waiting = [(i, t) for i, tasks in enumerate(pending) for t in tasks]
     left_in_child = sum(t.stage in in_child for _, t in waiting)
-    if child is None and left_in_child:
+    if child is None and any(t.stage in in_child and t.stage not in EITHER_STAGES for _, t in waiting):
         child = _ChildTasks(in_child)
     results = [batch.results[tasks[0].image] for tasks in pending]
     stages_of = [{t.stage for t in tasks} for tasks in pending]
@@ -857,13 +862,14 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
             sizes[i] = pixels
         return sizes[i] <= SYNC_PARALLEL_MAX_PIXELS
 
-    def apart(t: Task) -> bool:
-        """Whether ``t`` and every running task run in different processes (one in the child): their
-        memories do not add up in one process, so the size rule does not apply (stages/DECISIONS.md)."""
-        return all((t.stage in in_child) != (o.stage in in_child) for _, o in running.values())
+    def apart(there: bool) -> bool:
+        """Whether a task run in the child (``there``) or here and every running task run in different
+        processes: their memories do not add up in one process, so the size rule does not apply
+        (stages/DECISIONS.md)."""
+        return all(there != o_there for _, _, o_there in running.values())
 
-    def work(i: int, t: Task, alone: bool) -> TaskResult:
-        if t.stage in in_child:
+    def work(i: int, t: Task, alone: bool, there: bool) -> TaskResult:
+        if there:
             return child.run(t, store_url, _needed(t, results[i]))
         warmup.wait(t.stage)
         return execute(t, store_url, *_needed(t, results[i]), alone=alone)
@@ -872,26 +878,34 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
     finished_cleanly = False
     try:
         while waiting or running:
-            startable = [(i, t) for i, t in waiting if ready(i, t)]
+            # earlier images first; of one image, the task with the most stages behind it (the graph
+            # before an extension that would run on this process's free thread)
+            startable = sorted(((i, t) for i, t in waiting if ready(i, t)), key=lambda it: (it[0], -height(it[1].stage)))
             for i, t in startable:
                 if len(running) >= SYNC_THREADS:
                     break
-                if t.stage in in_child and any(o.stage in in_child for _, o in running.values()):
+                child_busy = any(o_there for _, _, o_there in running.values())
+                there = t.stage in in_child and child is not None
+                if there and child_busy and t.stage in EITHER_STAGES:
+                    if any(u.stage not in in_child and (j, u) in waiting for j, u in startable):
+                        continue   # this process has its own stages to run: the child computes it later
+                    there = False  # this thread would idle until the child is free
+                if there and child_busy:
                     continue   # the child runs one task at a time: a thread waiting on it would idle
-                if running and not (apart(t) or all(parallel(j) for j, _ in [*running.values(), (i, t)])):
+                if running and not (apart(there) or all(parallel(j) for j, _, _ in [*running.values(), (i, t, there)])):
                     break
                 waiting.remove((i, t))
                 alone = not running and len(startable) == 1
-                running[pool.submit(work, i, t, alone)] = (i, t)
+                running[pool.submit(work, i, t, alone, there)] = (i, t, there)
             finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for fut in finished:
-                i, t = running.pop(fut)
+                i, t, _ = running.pop(fut)
                 r = fut.result()
                 results[i][t.stage] = r
                 report(r)
                 if t.stage in in_child:
                     left_in_child -= 1
-                    if not left_in_child:  # its memory (torch's) is not needed any more
+                    if not left_in_child and child is not None:  # its memory (torch's) is not needed any more
                         child.close()
         finished_cleanly = True
     finally:

@@ -564,11 +564,12 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
     assert status["topology"] == status["flow"] == status["export"] == "skipped"
 
 
-def _logged_scheduler(monkeypatch, pixels, cost=None):
+def _logged_scheduler(monkeypatch, pixels, cost=None, images=("a.png",)):
     """The in-process scheduler with its tasks replaced by sleeps (``cost[stage]`` s, else 0.15 s) that
     log their start and end, and a child that runs its tasks one at a time on the calling thread.
 
-    Returns ``run(in_child) -> {("start"|"end", stage): time}`` over one image of every stage.
+    Returns ``run(in_child) -> {("start"|"end", name): time, ("where", name): "child"|"here"}`` over
+    every stage of ``images``; a name is the stage's for the first image, ``"b.field"`` for the others.
     """
     import threading
     import time
@@ -578,12 +579,14 @@ def _logged_scheduler(monkeypatch, pixels, cost=None):
 
     log, lock = [], threading.Lock()
 
-    def logged(task):
+    def logged(task, where="here"):
+        name = task.stage if task.image == images[0] else f"{task.image.split('.')[0]}.{task.stage}"
         with lock:
-            log.append(("start", task.stage, time.perf_counter()))
+            log.append(("start", name, time.perf_counter()))
+            log.append(("where", name, where))
         time.sleep((cost or {}).get(task.stage, 0.15))
         with lock:
-            log.append(("end", task.stage, time.perf_counter()))
+            log.append(("end", name, time.perf_counter()))
         return runner.TaskResult(task.image, task.stage, task.key, "computed")
 
     class FakeChild:   # the child's interface
@@ -592,7 +595,7 @@ def _logged_scheduler(monkeypatch, pixels, cost=None):
 
         def run(self, task, store_url, upstream):
             with self.busy:
-                return logged(task)
+                return logged(task, "child")
 
         def close(self, kill=False):
             pass
@@ -603,15 +606,17 @@ def _logged_scheduler(monkeypatch, pixels, cost=None):
     monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
     monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
     monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
-    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+    pending = [[runner.Task(image, image, s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+               for image in images]
 
     def run(in_child):
         log.clear()
         batch = runner.BatchResult(stages=[s.name for s in STAGES])
-        batch.results["a.png"] = {}
-        runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=in_child)
-        assert all(r.status == "computed" for r in batch.results["a.png"].values())
-        return {(kind, stage): t for kind, stage, t in log}
+        for image in images:
+            batch.results[image] = {}
+        runner._run_sync(pending, "unused", batch, lambda r: None, in_child=in_child)
+        assert all(r.status == "computed" for image in images for r in batch.results[image].values())
+        return {(kind, name): t for kind, name, t in log}
 
     return run
 
@@ -626,25 +631,65 @@ def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monk
     when = run(runner.CHILD_STAGES)
     assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
     # never two tasks at once in this process: each task of this process starts after the previous ended
-    mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if s.name not in runner.CHILD_STAGES)
+    mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if when[("where", s.name)] == "here")
     assert all(b[0] >= a[1] for a, b in zip(mine, mine[1:]))
     when = run(())   # the keypoints on a thread of this process: one task at a time, as before
     assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
 
 
 def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monkeypatch):
-    """The extension waits for the keypoints in the child; the graph, ready at the same moment, starts
-    at once on this process's free thread instead of queueing behind a thread that waits on the child."""
+    """While the child computes the keypoints, the graph and then the extension (it needs no torch) run
+    on this process's free thread, the graph first, instead of queueing behind the keypoints; with the
+    child idle when the extension is ready, the extension runs there, beside the graph."""
     from pipeline import runner
 
-    when = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.4, "field": 0.05})(runner.CHILD_STAGES)
+    run = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.6, "field": 0.05, "graph": 0.1})
+    when = run(runner.CHILD_STAGES)
     assert set(runner.CHILD_STAGES) == {"keypoints", "extension"}
+    assert when[("where", "keypoints")] == "child" and when[("where", "extension")] == "here"
+    assert when[("start", "graph")] < when[("end", "keypoints")]     # not queued behind the child
+    assert when[("end", "graph")] <= when[("start", "extension")] < when[("end", "keypoints")]
+    # a drawing whose keypoints end first: its extension goes to the child, beside the graph here
+    when = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.1, "field": 0.05, "graph": 0.6})(
+        runner.CHILD_STAGES)
+    assert when[("where", "extension")] == "child"
     assert when[("start", "extension")] >= when[("end", "keypoints")]
-    assert when[("start", "graph")] < when[("end", "keypoints")]     # not queued behind the extension
-    assert when[("start", "graph")] < when[("start", "extension")]
+    assert when[("start", "extension")] < when[("end", "graph")]
 
 
-def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg):
+def test_with_stages_of_its_own_to_run_this_process_leaves_the_extension_to_the_child(monkeypatch):
+    """Two drawings: while the child computes keypoints, this process runs the other drawing's field and
+    graph before it takes an extension (the child would compute it later beside them)."""
+    from pipeline import runner
+
+    when = _logged_scheduler(monkeypatch, 700 * 700, images=("a.png", "b.png"),
+                             cost={"keypoints": 0.5, "prep": 0.05, "field": 0.05, "graph": 0.1})(runner.CHILD_STAGES)
+    assert when[("start", "b.field")] < when[("end", "keypoints")]   # the child busy meanwhile
+    assert when[("start", "graph")] < when[("start", "b.field")] < when[("start", "extension")]
+    assert when[("start", "b.graph")] < when[("start", "extension")]
+
+
+def test_an_extension_without_keypoints_to_compute_starts_no_child(monkeypatch):
+    """A run whose keypoints are stored (a field setting changed) computes the extension here: no child
+    process, with its imports, is started for it."""
+    from pipeline import runner
+    from pipeline.registry import STAGES
+
+    started = []
+    monkeypatch.setattr(runner, "_ChildTasks", lambda *a, **k: started.append(a))
+    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False:
+                        runner.TaskResult(task.image, task.stage, task.key, "computed"))
+    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: 700 * 700)
+    todo = [s for s in STAGES if s.name in ("extension", "flow", "select", "export")]
+    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in todo]
+    batch = runner.BatchResult(stages=[s.name for s in STAGES])
+    batch.results["a.png"] = {}
+    runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=runner.CHILD_STAGES)
+    assert [r.status for r in batch.results["a.png"].values()] == ["computed"] * 4
+    assert not started
+
+
+def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, compose_cfg, monkeypatch):
     """``runtime.keypoints_process``: an in-process run computes the keypoints, then the field's
     extension, in a child process (beside the field and graph on this process's threads, free of the
     GIL) with the same artifacts; the child is gone when the run returns."""
@@ -666,10 +711,23 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
         pids[flag] = {stage: m["pid"] for stage, m in manifests.items()}
         assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
     assert pids["true"]["keypoints"] != os.getpid() and pids["true"]["prep"] == os.getpid()
-    # the field's extension (only the flow reads it) runs in the same child, after the keypoints
-    assert pids["true"]["extension"] == pids["true"]["keypoints"] and pids["true"]["graph"] == os.getpid()
+    # the field's extension (only the flow reads it) runs in the child after the keypoints, or here
+    # while the child is busy
+    assert pids["true"]["extension"] in (pids["true"]["keypoints"], os.getpid()) and pids["true"]["graph"] == os.getpid()
     assert pids["false"]["keypoints"] == pids["false"]["extension"] == os.getpid()
     assert keys["true"] == keys["false"]
+    # a field setting changed: the keypoints are stored, the extension is computed here, and no child starts
+    from pipeline import runner
+
+    started, child = [], runner._ChildTasks
+    monkeypatch.setattr(runner, "_ChildTasks", lambda *a, **k: started.append(a) or child(*a, **k))
+    batch = run_batch([image], compose_cfg(f"store.path={tmp_path / 'store-true'}", "runtime.cluster=sync",
+                                           "field.alpha=0.2"))
+    status = {stage: r.status for stage, r in batch.results[str(image)].items()}
+    assert status["keypoints"] == "cached" and status["extension"] == "computed"
+    manifest = json.loads(next((tmp_path / "store-true").glob(
+        f"extension/*/{batch.results[str(image)]['extension'].key}/manifest.json")).read_text())
+    assert manifest["pid"] == os.getpid() and not started
     from pipeline.store import ArtifactStore
     a = ArtifactStore(str(tmp_path / "store-true")).load("keypoints", keys["true"])
     b = ArtifactStore(str(tmp_path / "store-false")).load("keypoints", keys["false"])
