@@ -145,6 +145,24 @@ def _resolve_one(spec: str) -> list[tuple[Path, Path]]:
     raise UsageError(f"input not found: {spec}")
 
 
+def check_output_folder(out: Path) -> None:
+    """A usage error before any work when the output folder cannot be made: a file in its place or on
+    its way, or a folder this user may not write in (the run used to fail at its end, with a traceback).
+
+    Raises
+    ------
+    UsageError
+    """
+    probe = out
+    while not probe.exists() and not probe.is_symlink() and probe.parent != probe:
+        probe = probe.parent   # the nearest part of the path that exists
+    if not probe.is_dir():
+        raise UsageError(f"output={out}: " + ("a file of that name exists" if probe == out else f"{probe} is a file")
+                         + ", not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise UsageError(f"output={out}: no permission to write in {probe}")
+
+
 def job_output_dir(cfg: DictConfig) -> Path:
     """The output folder; in a multirun, a sub-folder named after the job's overrides."""
     return multirun_folder(Path(str(cfg.output)))
@@ -238,6 +256,10 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
                 if debug and r.detail:
                     console.print(r.detail, highlight=False, markup=False)
                 break
+        else:
+            if image in batch.output_errors:
+                console.print(f"[red]error[/] {escape(str(image))}: output: {escape(batch.output_errors[image])}",
+                              highlight=False, soft_wrap=True)
     for image, per in batch.results.items():
         for stage in batch.stages:
             r = per.get(stage)
@@ -276,6 +298,7 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     console = Console(stderr=True)
     out_dir = job_output_dir(cfg)
     named = resolve_inputs(inputs or cfg.get("input"), out_dir)
+    check_output_folder(out_dir)
     images = [image for image, _ in named]
     try:
         # A value out of its range (export.join.max_turn_deg=200) is a usage error: one line, exit 2,

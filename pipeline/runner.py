@@ -70,11 +70,13 @@ class BatchResult:
     results: dict[str, dict[str, TaskResult]] = field(default_factory=dict)
     stages: list[str] = field(default_factory=list)
     outputs: dict[str, list[str]] = field(default_factory=dict)
+    #: Image → why its output files could not be written (:func:`write_outputs`).
+    output_errors: dict[str, str] = field(default_factory=dict)
     wall_s: float = 0.0
 
     @property
     def failed_images(self) -> dict[str, str]:
-        """Image → first error line, for images with a failed stage."""
+        """Image → first error line, for images with a failed stage or output."""
         out = {}
         for image, per_stage in self.results.items():
             for stage in self.stages:
@@ -82,6 +84,9 @@ class BatchResult:
                 if r is not None and r.status == "failed":
                     out[image] = f"{stage}: {r.error}"
                     break
+            else:
+                if image in self.output_errors:
+                    out[image] = f"output: {self.output_errors[image]}"
         return out
 
     def counts(self) -> dict[str, dict[str, int]]:
@@ -977,7 +982,8 @@ def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Pa
     Returns
     -------
     dict
-        Image → files written.
+        Image → files written. An image whose files cannot be written is left out, its reason in
+        ``batch.output_errors``.
 
     Raises
     ------
@@ -996,21 +1002,22 @@ def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Pa
             continue
         art = load_artifact(store, "export", r.key)
         name = str(names[image])
-        (output_dir / name).parent.mkdir(parents=True, exist_ok=True)
-        files = []
-        svg = output_dir / f"{name}.svg"
-        _atomic_write(svg, art.data["svg"])
-        files.append(str(svg))
         payload = {k: v for k, v in art.data.items() if k not in ("svg", "bezier_svg")}
         payload.update(source=str(image), artifact=r.key)
-        js = output_dir / f"{name}.json"
-        _atomic_write(js, curves_json(payload))
-        files.append(str(js))
+        texts = {output_dir / f"{name}.svg": art.data["svg"], output_dir / f"{name}.json": curves_json(payload)}
         if art.data.get("bezier_svg"):
-            bz = output_dir / f"{name}.bezier.svg"
-            _atomic_write(bz, art.data["bezier_svg"])
-            files.append(str(bz))
-        written[image] = files
+            texts[output_dir / f"{name}.bezier.svg"] = art.data["bezier_svg"]
+        where = (output_dir / name).parent
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            for where, text in texts.items():
+                _atomic_write(where, text)
+        except OSError as exc:
+            # one image's files (a sub-folder's name taken by a file, a full disk): its error line,
+            # the other images' files still written; what it wrote stays (whole files only)
+            batch.output_errors[image] = f"cannot write {where} ({exc.strerror or exc})"
+            continue
+        written[image] = [str(p) for p in texts]
     batch.outputs = written
     return written
 
@@ -1034,5 +1041,8 @@ def curves_json(payload: dict) -> str:
 
 def _atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

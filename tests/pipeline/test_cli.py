@@ -522,6 +522,28 @@ def test_output_tree_mirrors_the_input_tree(tmp_path, cli):
     assert "wrote out/clean/kitten.svg, out/clean/kitten.json" in proc.stderr.replace("\n", "")
 
 
+def test_an_output_folder_that_cannot_be_made_is_said_in_one_line(tmp_path, cli):
+    """``output=`` naming a file is a usage error before any work; a sub-folder of the output tree whose
+    name a file has taken fails that image's files alone, in its error line (both were tracebacks after
+    the whole run)."""
+    src = tmp_path / "scans"
+    for sub in ("clean", "rough"):
+        (src / sub).mkdir(parents=True)
+        (src / sub / "kitten.png").write_bytes(synthetic.vee(size=48).png_bytes())
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "clean").write_text("a file where out/clean/ would go")
+    proc = cli("scans/", "runtime.cluster=sync", cwd=tmp_path)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "error scans/clean/kitten.png: output: cannot write out/clean (File exists)" in proc.stderr.replace("\n", "")
+    assert (tmp_path / "out" / "rough" / "kitten.svg").is_file()
+    assert not list((tmp_path / "out").glob(".*tmp*"))
+    for output, said in (("out/clean", "a file of that name exists"), ("out/clean/deeper", "out/clean is a file")):
+        proc = cli("scans/", f"output={output}", "store.path=elsewhere", cwd=tmp_path)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.strip() == f"polyvec: error: output={output}: {said}, not a folder", proc.stderr
+        assert not (tmp_path / "elsewhere").exists()     # no work began
+
+
 def _folder_run_to_interrupt(tmp_path):
     """``polyvec`` on a folder of 4 drawings on a local cluster, in its own process group, with the
     default SIGINT disposition, as in a terminal (a suite started as a background job of a
