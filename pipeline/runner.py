@@ -26,12 +26,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from pipeline import kernels, warmup
+from pipeline.launch import THREAD_ENV, take_early
 from pipeline.registry import BY_NAME, StageSpec, active_stages, check_stage, height
 from pipeline.store import ArtifactStore, adopt_library_versions, artifact_key, hash_bytes, item_keys, library_versions
 from stages.errors import InputError
-
-THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-              "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
 
 
 @dataclass(frozen=True)
@@ -663,9 +661,13 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             warmup.start(sorted(todo))
         in_child = CHILD_STAGES if sync and runtime["keypoints_process"] else ()
         # The child starts before the code check below, so that its own imports (torch) and the
-        # networks' weights load on the other core meanwhile (stages/DECISIONS.md, engine).
-        child = (_ChildTasks(in_child, {name: stage_config(cfg, name) for name in in_child})
-                 if todo & (set(in_child) - set(EITHER_STAGES)) else None)
+        # networks' weights load on the other core meanwhile; the one `polyvec` forked before its
+        # own imports is adopted (stages/DECISIONS.md, engine).
+        child = None
+        if todo & (set(in_child) - set(EITHER_STAGES)):
+            configs = {name: stage_config(cfg, name) for name in in_child}
+            child = _ChildTasks(in_child, configs, early=take_early())
+        _end_early()   # not adopted: nothing for it in this process
         try:
             # Only now the code of the stages with work to do is imported (a stored artifact needs none).
             for spec in stages:
@@ -685,8 +687,19 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
                 child.close(kill=True)
                 child.join()
             warmup.stop()  # nothing to stop unless in-process warm-ups were started
+    _end_early()   # every artifact stored
     batch.wall_s = time.perf_counter() - t0
     return batch
+
+
+def _end_early() -> None:
+    """End the keypoints child ``polyvec`` forked before its imports, unless a run adopted it."""
+    early = take_early()
+    if early is not None:
+        proc, conn = early
+        proc.kill()
+        conn.close()
+        proc.join()
 
 
 #: ``runtime.cluster: auto`` runs a batch in-process when at most this many images have work left
@@ -757,15 +770,23 @@ class _ChildTasks:
     a keypoints process hardly more (stages/DECISIONS.md, engine). The child is spawned at once, with
     SIGINT blocked (Ctrl-C is the driver's to report, as for dask's workers), and imports the
     stages' code and preloads what they use (``configs``: each stage's config section, for its
-    ``preload``) while the driver checks the code and runs prep.
+    ``preload``) while the driver checks the code and runs prep. ``early``: instead, the child that
+    ``polyvec`` forked before its own imports (:func:`pipeline.launch.take_early`), given ``configs``.
     """
 
-    def __init__(self, stages: tuple[str, ...], configs: dict[str, dict] | None = None):
+    def __init__(self, stages: tuple[str, ...], configs: dict[str, dict] | None = None, early: tuple | None = None):
         import multiprocessing
 
+        self.lock = threading.Lock()
+        if early is not None:
+            self.proc, self.conn = early
+            try:
+                self.conn.send(configs or {})
+            except OSError:   # gone already: its first task reports it
+                pass
+            return
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
-        self.lock = threading.Lock()
         self.proc = ctx.Process(target=_serve_tasks, args=(child, stages, configs or {}), daemon=True,
                                 name="polyvec-" + "-".join(stages))
         try:
@@ -809,19 +830,29 @@ class _ChildTasks:
             self.proc.join()
 
 
-def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict]) -> None:
-    """The child of :class:`_ChildTasks`: import the stages, preload what their tasks will use (a
-    stage's ``preload(section)``, given its config section), then run tasks until told to stop."""
-    os.environ.update(THREAD_ENV)
-    keep_network_memory()
-    for name in stages:
-        mod = BY_NAME[name].load()
+def _preload(modules: dict, configs: dict) -> None:
+    """Each stage's ``preload(section)`` for the stages ``configs`` names (see :func:`_serve_tasks`)."""
+    for name, mod in modules.items():
         if name in configs and "preload" in dir(mod):
             try:
                 mod.preload(configs[name])
             except Exception:  # noqa: BLE001 - the task itself will fail with the clear message
                 pass
+
+
+def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict] | None) -> None:
+    """The child of :class:`_ChildTasks`: import the stages, preload what their tasks will use (a
+    stage's ``preload(section)``, given its config section), then run tasks until told to stop.
+    ``configs`` None (the child forked before the run was planned): a stage's ``preload(None)``
+    imports what every config needs, then the first message brings the sections, or None to stop."""
+    os.environ.update(THREAD_ENV)
+    keep_network_memory()
+    modules = {name: BY_NAME[name].load() for name in stages}
     try:
+        if configs is None:
+            _preload(modules, dict.fromkeys(modules))
+            configs = conn.recv() or {}
+        _preload(modules, configs)
         while (message := conn.recv()) is not None:
             task, store_url, upstream, versions = message
             adopt_library_versions(versions)

@@ -40,8 +40,8 @@ def train_configs() -> tuple:
             from_section(LabelRules, train["labels"], "train.labels"))
 
 
-def run_cli(*args: str, cwd: Path, module: str = "pipeline.cli") -> subprocess.CompletedProcess:
-    """Run a polyvec command line (``python -m module args``) in a subprocess, as a user would."""
+def run_cli(*args: str, cwd: Path, module: str = "pipeline.launch") -> subprocess.CompletedProcess:
+    """Run a polyvec command line (``python -m module args``; `polyvec` is pipeline.launch) in a subprocess, as a user would."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
                           env=env, timeout=900)

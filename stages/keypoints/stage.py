@@ -134,9 +134,9 @@ def load_type_classifier(path: str | Path | None = None) -> TypeClassifier:
     return _TYPE_CLASSIFIERS[str(p)]
 
 
-def preload(cfg: dict) -> None:
+def preload(cfg: dict | None) -> None:
     """Import torch and load the networks and typing that :func:`run` with ``cfg`` uses, into this
-    process's caches.
+    process's caches; ``cfg`` None: the imports only (a child started before the config is known).
 
     For a process that will run keypoints tasks and has time before the first: the engine's keypoints
     child calls it at start, while the driver checks the stages' code and runs prep (torch's import
@@ -151,6 +151,8 @@ def preload(cfg: dict) -> None:
 
     import stages.keypoints.inference  # noqa: F401 - its import (torch's submodules) is what takes long
 
+    if cfg is None:
+        return
     c = from_section(KeypointsConfig, cfg, "keypoints")
     torch.set_num_threads(c.torch_threads)
     for weights in (c.weights, *c.detection_ensemble):

@@ -377,7 +377,7 @@ _LIST_MODULES_AT_EXIT = """
 import atexit, json, runpy, sys
 atexit.register(lambda: open("modules.json", "w").write(json.dumps(sorted(sys.modules))))
 sys.argv[0] = "polyvec"
-runpy.run_module("pipeline.cli", run_name="__main__")
+runpy.run_module("pipeline.launch", run_name="__main__")
 """
 
 
@@ -437,7 +437,7 @@ def test_help_into_a_closed_pipe_is_quiet(tmp_path):
 
     read, write = os.pipe()
     os.close(read)                         # a reader that is already gone
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "--help"], stdout=write, stderr=subprocess.PIPE,
+    proc = subprocess.run([sys.executable, "-m", "pipeline.launch", "--help"], stdout=write, stderr=subprocess.PIPE,
                           text=True, timeout=60, cwd=tmp_path)
     os.close(write)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
@@ -556,7 +556,7 @@ def _folder_run_to_interrupt(tmp_path):
     src.mkdir()
     for k in range(4):
         (src / f"v{k}.png").write_bytes(synthetic.vee(size=48 + 4 * k).png_bytes())
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
+    return subprocess.Popen([sys.executable, "-m", "pipeline.launch", "input=in/", "runtime.cluster=local"], cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
@@ -770,7 +770,7 @@ def test_first_run_says_it_compiles_kernels(tmp_path):
 
     (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
-    runs = [subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.until=graph",
+    runs = [subprocess.run([sys.executable, "-m", "pipeline.launch", "vee.png", "runtime.until=graph",
                             "runtime.cluster=sync", "runtime.shipped_kernels=false",
                             f"store.path={tmp_path / f'store{k}'}"], cwd=tmp_path,
                            capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
@@ -779,7 +779,7 @@ def test_first_run_says_it_compiles_kernels(tmp_path):
     assert "compiling kernels" not in runs[1].stderr
     # Nothing to compute, nothing compiled: an empty numba cache does not matter then.
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "another-numba-cache")
-    cached = subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.until=graph",
+    cached = subprocess.run([sys.executable, "-m", "pipeline.launch", "vee.png", "runtime.until=graph",
                              f"store.path={tmp_path / 'store0'}"], cwd=tmp_path, capture_output=True, text=True,
                             env=env, timeout=600)
     assert cached.returncode == 0 and "compiling kernels" not in cached.stderr, cached.stderr
@@ -1111,7 +1111,7 @@ def test_in_a_terminal_the_progress_display_redraws_at_most_twice_a_second(tmp_p
 
     primary, secondary = pty.openpty()
     started = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "runtime.until=field", "runtime.cluster=sync"],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.launch", "runtime.until=field", "runtime.cluster=sync"],
                             cwd=tmp_path, stdin=secondary, stdout=secondary, stderr=secondary,
                             env=dict(os.environ, COLUMNS="100", TERM="xterm"))
     os.close(secondary)

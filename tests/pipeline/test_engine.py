@@ -801,3 +801,70 @@ def test_the_keypoints_child_imports_no_more_than_its_stages_need():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == []
+
+
+# `polyvec` as its console entry runs it (pipeline.launch), with the early child's pid written to
+# early.pid and, as the process exits (before multiprocessing ends its children), whether it lives.
+_EARLY_CHILD_RUN = """
+import atexit, sys
+from pipeline import launch
+launch.start_early()
+proc = launch._EARLY[0][0]
+open("early.pid", "w").write(str(proc.pid))
+atexit.register(lambda: open("alive.txt", "w").write(str(proc.is_alive())))
+sys.argv = ["polyvec", *sys.argv[1:]]
+from pipeline.cli import main
+main()
+"""
+
+
+def _gone(pid: int, timeout_s: float = 20.0) -> bool:
+    """Whether process ``pid`` has ended (or is a zombie nobody reaped) within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            state = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state in ("Z", "X"):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the early child is forked on Linux only")
+def test_polyvec_forks_its_keypoints_child_before_its_imports_and_the_run_adopts_it(tmp_path):
+    """The keypoints child starts before ``polyvec`` imports its own code (its torch import then runs
+    beside the CLI's imports and planning); the run computes its keypoints in that very process, and a
+    run with none to compute (every artifact stored, a λ re-run) ends it: no process outlives a run."""
+    (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48, width=3).png_bytes())
+
+    def run(*args):
+        out = subprocess.run([sys.executable, "-c", _EARLY_CHILD_RUN, "vee.png", "runtime.cluster=sync", *args],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return int((tmp_path / "early.pid").read_text()), (tmp_path / "alive.txt").read_text()
+
+    early, alive = run()
+    pids = {p.parent.parent.parent.name: json.loads(p.read_text())["pid"] for p in tmp_path.glob("artifacts/*/*/*/manifest.json")}
+    assert pids["keypoints"] == early != pids["prep"]
+    assert alive == "False" and _gone(early)
+    for args in ((), ("flow.lam=0.5",)):   # every artifact stored; a λ re-run: no keypoints to compute
+        early, alive = run(*args)
+        assert alive == "False" and _gone(early)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the early child is forked on Linux only")
+def test_the_early_keypoints_child_leaves_when_polyvec_is_killed(tmp_path):
+    """A forked child holds a copy of the driver's end of its pipe: it closes it, so that it sees the
+    driver go (killed, or ended by Ctrl-C without its exit handlers) instead of waiting for ever."""
+    import signal
+
+    script = ("import time\nfrom pipeline import launch\nlaunch.start_early()\n"
+              "print(launch._EARLY[0][0].pid, flush=True)\ntime.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    early = int(proc.stdout.readline())
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert _gone(early, timeout_s=60)

@@ -138,7 +138,7 @@ def test_the_readme_commands_run(work):
     shutil.copytree(work / "artifacts", d / "artifacts")
     for cmd in commands:
         prog, *args = cmd.split()
-        module = {"polyvec": "pipeline.cli", "polyvec-inspect": "pipeline.inspect"}[prog]
+        module = {"polyvec": "pipeline.launch", "polyvec-inspect": "pipeline.inspect"}[prog]
         r = run_cli(*args, cwd=d, module=module)
         assert r.returncode == 0, f"{cmd}: {r.stderr[-1500:]}"
     assert (d / "out" / "polyvec-example.html").is_file()

@@ -309,7 +309,7 @@ def test_the_first_run_of_a_fresh_install_compiles_nothing(tmp_path):
     _shipped_fit()
     (tmp_path / "vee.png").write_bytes(synthetic.vee(size=48).png_bytes())
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
-    run = subprocess.run([sys.executable, "-m", "pipeline.cli", "vee.png", "runtime.cluster=sync",
+    run = subprocess.run([sys.executable, "-m", "pipeline.launch", "vee.png", "runtime.cluster=sync",
                           f"store.path={tmp_path / 'store'}"], cwd=tmp_path, capture_output=True, text=True,
                          env=env, timeout=600)
     assert run.returncode == 0, run.stderr
