@@ -851,9 +851,10 @@ def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict] | None)
     try:
         if configs is None:
             _preload(modules, dict.fromkeys(modules))
-            configs = conn.recv() or {}
-        _preload(modules, configs)
-        while (message := conn.recv()) is not None:
+            configs = conn.recv()
+        if configs is not None:   # None: told to leave before any task
+            _preload(modules, configs)
+        while configs is not None and (message := conn.recv()) is not None:
             task, store_url, upstream, versions = message
             adopt_library_versions(versions)
             conn.send(execute(task, store_url, *upstream))
@@ -871,8 +872,8 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
     the flow). Tasks of the stages ``in_child`` run in one child process (:class:`_ChildTasks`):
     ``child`` when given (:func:`run_batch` starts it early), else one started here when such a task
     is pending; those of :data:`EITHER_STAGES` run here instead while the child is busy and this
-    process has nothing else to start, or when there is no child. On Ctrl-C no new task starts; the running ones finish (each
-    writes its artifact whole) and the child is killed.
+    process has nothing else to start, or when there is no child. On Ctrl-C no new task starts; the
+    running ones finish (each writes its artifact whole) and the child is killed.
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
