@@ -917,7 +917,8 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
         while waiting or running:
             # earlier images first; of one image, the task with the most stages behind it (the graph
             # before an extension that would run on this process's free thread)
-            startable = sorted(((i, t) for i, t in waiting if ready(i, t)), key=lambda it: (it[0], -height(it[1].stage)))
+            startable = sorted(((i, t) for i, t in waiting if ready(i, t)),
+                               key=lambda it: (it[0], -height(it[1].stage)))
             for i, t in startable:
                 if len(running) >= SYNC_THREADS:
                     break

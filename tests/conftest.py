@@ -41,7 +41,8 @@ def train_configs() -> tuple:
 
 
 def run_cli(*args: str, cwd: Path, module: str = "pipeline.launch") -> subprocess.CompletedProcess:
-    """Run a polyvec command line (``python -m module args``; `polyvec` is pipeline.launch) in a subprocess, as a user would."""
+    """Run a polyvec command line (``python -m module args``) in a subprocess, as a user would; the
+    default module is what the ``polyvec`` command runs."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
                           env=env, timeout=900)

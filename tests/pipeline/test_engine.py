@@ -846,7 +846,8 @@ def test_polyvec_forks_its_keypoints_child_before_its_imports_and_the_run_adopts
         return int((tmp_path / "early.pid").read_text()), (tmp_path / "alive.txt").read_text()
 
     early, alive = run()
-    pids = {p.parent.parent.parent.name: json.loads(p.read_text())["pid"] for p in tmp_path.glob("artifacts/*/*/*/manifest.json")}
+    pids = {p.parent.parent.parent.name: json.loads(p.read_text())["pid"]
+            for p in tmp_path.glob("artifacts/*/*/*/manifest.json")}
     assert pids["keypoints"] == early != pids["prep"]
     assert alive == "False" and _gone(early)
     for args in ((), ("flow.lam=0.5",)):   # every artifact stored; a λ re-run: no keypoints to compute
