@@ -247,19 +247,12 @@ def print_summary(batch: BatchResult, console, debug: bool = False) -> None:
         table.add_row(stage, str(c.get("computed", 0)), str(c.get("cached", 0)), str(c.get("failed", 0)),
                       str(c.get("skipped", 0)), f"{secs:.2f}")
     console.print(table)
-    for image, per in batch.results.items():
-        for stage in batch.stages:
-            r = per.get(stage)
-            if r is not None and r.status == "failed":
-                console.print(f"[red]error[/] {escape(str(image))}: {stage}: {escape(str(r.error))}", highlight=False,
-                              soft_wrap=True)
-                if debug and r.detail:
-                    console.print(r.detail, highlight=False, markup=False)
-                break
-        else:
-            if image in batch.output_errors:
-                console.print(f"[red]error[/] {escape(str(image))}: output: {escape(batch.output_errors[image])}",
-                              highlight=False, soft_wrap=True)
+    for image, why in batch.failed_images.items():
+        console.print(f"[red]error[/] {escape(str(image))}: {escape(why)}", highlight=False, soft_wrap=True)
+        per = batch.results[image]
+        detail = next((per[s].detail for s in batch.stages if s in per and per[s].status == "failed"), None)
+        if debug and detail:
+            console.print(detail, highlight=False, markup=False)
     for image, per in batch.results.items():
         for stage in batch.stages:
             r = per.get(stage)

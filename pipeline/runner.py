@@ -687,7 +687,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
                 child.close(kill=True)
                 child.join()
             warmup.stop()  # nothing to stop unless in-process warm-ups were started
-    _end_early()   # every artifact stored
+    else:
+        _end_early()   # every artifact stored
     batch.wall_s = time.perf_counter() - t0
     return batch
 
@@ -854,10 +855,10 @@ def _serve_tasks(conn, stages: tuple[str, ...], configs: dict[str, dict] | None)
             configs = conn.recv()
         if configs is not None:   # None: told to leave before any task
             _preload(modules, configs)
-        while configs is not None and (message := conn.recv()) is not None:
-            task, store_url, upstream, versions = message
-            adopt_library_versions(versions)
-            conn.send(execute(task, store_url, *upstream))
+            while (message := conn.recv()) is not None:
+                task, store_url, upstream, versions = message
+                adopt_library_versions(versions)
+                conn.send(execute(task, store_url, *upstream))
     except (EOFError, OSError):  # the driver is gone (Ctrl-C): nothing to report to
         pass
     os._exit(0)
@@ -919,13 +920,14 @@ def _run_sync(pending, store_url, batch, report, in_child: tuple[str, ...] = (),
             # before an extension that would run on this process's free thread)
             startable = sorted(((i, t) for i, t in waiting if ready(i, t)),
                                key=lambda it: (it[0], -height(it[1].stage)))
-            for i, t in startable:
+            for pos, (i, t) in enumerate(startable):
                 if len(running) >= SYNC_THREADS:
                     break
                 child_busy = any(o_there for _, _, o_there in running.values())
                 there = t.stage in in_child and child is not None
                 if there and child_busy and t.stage in EITHER_STAGES:
-                    if any(u.stage not in in_child and (j, u) in waiting for j, u in startable):
+                    # this process's own tasks before it in the order have started (or the loop broke)
+                    if any(u.stage not in in_child for _, u in startable[pos + 1:]):
                         continue   # this process has its own stages to run: the child computes it later
                     there = False  # this thread would idle until the child is free
                 if there and child_busy:
