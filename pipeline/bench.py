@@ -14,7 +14,7 @@ Cases
   for fidelity to the input.
 - **Plain image** (no such JSON): fidelity to the binarised input and topology counts only.
 
-Every image runs through :func:`pipeline.runner.run_batch` (the same store and cache as ``polyvec``);
+Every image runs through :func:`pipeline.engine.execute.batch.run_batch` (the same store and cache as ``polyvec``);
 whatever stages exist are scored: without an ``export`` stage, the curves come from ``select`` +
 ``flow``; without those, only keypoints and timings are reported.
 
@@ -36,47 +36,16 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.bench_report import case_picture, pick_sort_column, print_tables, safe_name, sort_key, write_report
-from pipeline.cli import IMAGE_SUFFIXES, ExitCode, UsageError, hydra_app, multirun_folder
-from pipeline.runner import BatchResult, TaskResult, plan, run_batch
-from pipeline.store import ArtifactStore
+from pipeline.engine.execute.base import BatchResult, TaskResult
+from pipeline.engine.execute.batch import run_batch
+from pipeline.engine.plan import plan
+from pipeline.engine.store import ArtifactStore
+from pipeline.hydra_command import ExitCode, UsageError, hydra_app, multirun_folder
+from pipeline.inputs import IMAGE_SUFFIXES
 from stages.config import from_section
-from stages.evaluate import RasterParams, TopologyParams
+from stages.evaluate import BenchConfig, RasterParams, TopologyParams
 
 KEYPOINT_CLASSES = {"endpoints": 1, "junctions": 3, "corners": 5}
-
-
-@dataclass
-class BenchKeypointsConfig:
-    """``bench.keypoints``: the authors' keypoint F1 and a one-to-one F1 (metrics.md §3)."""
-
-    radius_height_fraction: float
-    one_to_one_radius_px: float
-
-
-@dataclass
-class BenchReportConfig:
-    """``bench.report``: the summary tables and ``report.html``."""
-
-    sort_by: str
-    html: bool
-    max_html_cases: int
-    image_scale: int
-    gt_columns: list[str]
-    fidelity_columns: list[str]
-
-
-@dataclass
-class BenchConfig:
-    """The ``bench`` config group (``conf/bench/default.yaml``), one field per key."""
-
-    cases: list[str]
-    out: str
-    limit: int | None
-    run_pipeline: bool
-    raster: RasterParams
-    keypoints: BenchKeypointsConfig
-    topology: TopologyParams
-    report: BenchReportConfig
 
 
 @dataclass
@@ -185,7 +154,7 @@ def load_grey(path: Path) -> np.ndarray:
 # -- artifacts ---------------------------------------------------------------------------------
 def stored_keys(images: list[Path], cfg: Any, store: ArtifactStore) -> BatchResult:
     """What a batch would produce, from the store only (``bench.run_pipeline=false``)."""
-    from pipeline.registry import active_stages
+    from pipeline.engine.registry import active_stages
 
     stages = active_stages(cfg.runtime.get("until"))
     batch = BatchResult(stages=[s.name for s in stages])
@@ -382,7 +351,7 @@ def summary_tables(rows: list[dict], bcfg: dict) -> dict[str, list[dict]]:
         if pooled := pooled_keypoints(gt_rows):
             out["keypoints pooled over all points"] = pooled
     out["fidelity, topology, cost"] = summarise(rows, list(rep["fidelity_columns"]), group_by="group")
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
 
     stage_cols = [f"t_{s.name}" for s in STAGES if any(f"t_{s.name}" in r for r in rows)]
     if stage_cols:
@@ -416,8 +385,8 @@ def run_bench(cfg: DictConfig, console=None) -> tuple[list[dict], dict]:
         raise UsageError("the same image is listed twice in bench.cases")
     t0 = time.perf_counter()
     if bcfg["run_pipeline"]:
-        from pipeline.cli import StageProgress
-        from pipeline.registry import active_stages
+        from pipeline.console import StageProgress
+        from pipeline.engine.registry import active_stages
 
         stages = [s.name for s in active_stages(cfg.runtime.get("until"))]
         show = bool(cfg.runtime.get("progress", True)) and console.is_terminal

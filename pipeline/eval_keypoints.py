@@ -66,7 +66,7 @@ def load_ground_truth(png: Path, rules: LabelRules | None = None) -> tuple[np.nd
 def relabel_rules(crossing_angle: float) -> LabelRules:
     """The training label rules (``conf/train`` ``labels``) with crossings junctions from
     ``crossing_angle`` degrees: the case labels (metrics.md §4.2) use about 37°, the acceptance scorer 20°."""
-    from pipeline.registry import default_config
+    from pipeline.engine.config import default_config
     from stages.config import from_section
     from stages.keypoints.training.config import LabelRules
 
@@ -87,7 +87,7 @@ def _relabelled(case: dict, rules: LabelRules, where: Path) -> tuple[np.ndarray,
 
 
 def _configs(overrides: dict) -> tuple[dict, dict]:
-    from pipeline.registry import default_config
+    from pipeline.engine.config import default_config
 
     prep_cfg, kp_cfg = default_config("prep"), default_config("keypoints")
     kp_cfg.update({k: v for k, v in overrides.items() if v is not None})

@@ -16,18 +16,9 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.registry import STAGES
-from pipeline.store import ArtifactStore, hash_bytes
-
-STAGE_ORDER = {s.name: i for i, s in enumerate(STAGES)}
-
-
-def artifacts_of(store: ArtifactStore, image: str) -> list[tuple[str, str, dict]]:
-    """``(stage, key, manifest)`` of every artifact made from ``image`` (a path), newest last."""
-    image_key = hash_bytes(Path(image).read_bytes())
-    found = [(s, k, m) for s, k, m in store.iter_manifests() if m.get("image") == image_key]
-    return sorted(found, key=lambda t: (STAGE_ORDER.get(t[0], 99), t[2].get("written_at", 0)))
-
+from pipeline.engine.lookup import STAGE_ORDER, artifacts_of
+from pipeline.engine.registry import STAGES
+from pipeline.engine.store import ArtifactStore
 
 def resolve(store: ArtifactStore, stage: str, key_prefix: str | None, image: str | None) -> str:
     """Full key of an artifact: from a key prefix, the newest one of ``image``, or the only image's.

@@ -23,8 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.registry import STAGES, default_config
-from pipeline.store import ArtifactStore
+from pipeline.engine.config import default_config
+from pipeline.engine.lookup import planned_keys
+from pipeline.engine.registry import STAGES
+from pipeline.engine.store import ArtifactStore
 from stages.artifact import unpack_ragged
 from stages.prep import internal_origin, internal_scale, source_size, to_internal
 from stages.topology.topology_picture import TYPE_COLOURS
@@ -35,58 +37,7 @@ STAGE_ORDER = [s.name for s in STAGES]
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
 
 
-# -- gathering -----------------------------------------------------------------------------------
-def chain_keys(store: ArtifactStore, stage: str, key: str) -> dict[str, str]:
-    """Stage → key of an artifact and of every artifact upstream of it (following the manifests)."""
-    out = {stage: key}
-    todo = [(stage, key)]
-    while todo:
-        s, k = todo.pop()
-        for name, up in store.manifest(s, k).get("inputs", {}).items():
-            if name != "image" and name not in out and store.exists(name, up):
-                out[name] = up
-                todo.append((name, up))
-    return out
-
-
-def latest_keys(store: ArtifactStore, image: str | Path) -> dict[str, str]:
-    """Keys of one consistent chain of artifacts of ``image``: the newest artifact of the last stage
-    stored, and everything upstream of it.
-
-    Raises
-    ------
-    LookupError
-        When nothing of the image is stored.
-    """
-    from pipeline.inspect import artifacts_of
-
-    rows = artifacts_of(store, str(image))
-    if not rows:
-        raise LookupError(f"nothing stored for {image} in {store.url}; run `polyvec input={image}` first")
-    last = max(rows, key=lambda r: (STAGE_ORDER.index(r[0]) if r[0] in STAGE_ORDER else -1,
-                                    r[2].get("written_at", 0)))
-    return chain_keys(store, last[0], last[1])
-
-
-def planned_keys(store: ArtifactStore, image: str | Path, overrides: list[str] | None = None) -> dict[str, str]:
-    """Keys of the artifacts ``polyvec input=IMAGE [overrides]`` would use (its config composed as the
-    CLI does, ``<stem>.keypoints.json`` beside the image included), when its last stage is stored;
-    otherwise :func:`latest_keys`.
-    """
-    from pipeline.config_cache import compose_config
-    from pipeline.registry import active_stages
-    from pipeline.runner import plan
-
-    try:
-        cfg = compose_config("config", list(overrides or []))
-        (tasks,) = plan([image], cfg, active_stages())
-    except ValueError:  # a malformed edits file beside the image (pipeline.edits.EditsError)
-        return latest_keys(store, image)
-    if tasks and store.exists(tasks[-1].stage, tasks[-1].key):
-        return chain_keys(store, tasks[-1].stage, tasks[-1].key)
-    return latest_keys(store, image)
-
-
+# -- pictures ------------------------------------------------------------------------------------
 def _png_uri(img: np.ndarray) -> str:
     """``data:`` URI of a uint8 image (H, W), (H, W, 3) or (H, W, 4)."""
     from PIL import Image

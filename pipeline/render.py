@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.store import ArtifactStore
+from pipeline.engine.store import ArtifactStore
 from stages.artifact import unpack_ragged
 from stages.prep import to_internal
 

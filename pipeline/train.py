@@ -80,7 +80,7 @@ def _main() -> None:
     import hydra
     from omegaconf import OmegaConf
 
-    from pipeline.cli import no_stray_multirun
+    from pipeline.hydra_command import no_stray_multirun
 
     @hydra.main(version_base=None, config_path="pkg://conf", config_name="train_app")
     def _app(cfg) -> None:

@@ -45,7 +45,7 @@ def portable_cpu_target(environ=os.environ) -> bool:
     """Make numba compile for :data:`PORTABLE_CPU`, not for this exact CPU, when the CPU has that level.
 
     numba loads a cached kernel only for the CPU name and features it was compiled for; the package ships
-    its kernels compiled for this level (:mod:`pipeline.kernels`), so they load on every x86-64 CPU that
+    its kernels compiled for this level (:mod:`pipeline.engine.kernels.shipped`), so they load on every x86-64 CPU that
     has it (most since 2015) instead of being compiled on a user's first drawing. A user's own
     ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES`` are kept. Same speed and byte-identical outputs as this
     machine's own target (stages/DECISIONS.md). Must run before numba is imported (it reads them once);

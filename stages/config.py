@@ -2,7 +2,7 @@
 
 Each stage declares its section of ``conf/<stage>/default.yaml`` as a (nested) frozen dataclass with no
 defaults: the YAML holds every value, the dataclass every key and its type. The engine registers the
-same dataclasses as Hydra structured configs (:mod:`pipeline.schema`), so a key the dataclass lacks is
+same dataclasses as Hydra structured configs (:mod:`pipeline.engine.config`), so a key the dataclass lacks is
 an error when the config is composed; :func:`from_section` applies the same rule to the plain dict a
 stage's ``run`` receives (tests and scripts call stages without Hydra).
 """

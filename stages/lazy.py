@@ -1,7 +1,7 @@
 """Public names of a package that its submodules define, imported when first used (PEP 562).
 
 A stage package's ``__init__`` is light: its ``STAGE_VERSION`` and config dataclasses, which every
-run needs (the artifact keys, the Hydra schemas of :mod:`pipeline.schema`). Its code is in a
+run needs (the artifact keys, the Hydra schemas of :mod:`pipeline.engine.config`). Its code is in a
 submodule (``stages/<stage>/stage.py``) that imports numba, scipy, scikit-image, PuLP or torch, which
 a run whose artifacts are all stored never needs (issue 14: a fully cached run in under a second).
 :func:`lazy_names` gives the package a module ``__getattr__`` and ``__dir__`` so that

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import kernels, warmup  # (kernels imports stages: numba's CPU target is set before a test imports numba)
+from pipeline.engine.kernels import shipped as kernels, warmup  # (kernels imports stages: numba's CPU target is set before a test imports numba)
 
 # Tests call the stages directly too: start from the shipped kernels, as an installed polyvec's first run does
 # (where they fit this machine), not from compiling them in each test worker.

@@ -11,7 +11,8 @@
 
 Not a pipeline stage: no ``run``; pure functions of arrays used by ``pipeline/bench.py``. The settings
 of the metrics (``bench.raster``, ``bench.topology``) are here, apart from the code, which imports
-scipy: the configs (:mod:`pipeline.schema`) need them at every start-up of ``polyvec``.
+scipy: the configs (:mod:`pipeline.engine.config`) need them at every start-up of ``polyvec``, the
+``bench`` group's own dataclasses (:class:`BenchConfig`) among them.
 """
 
 from __future__ import annotations
@@ -59,3 +60,36 @@ class RasterParams:
         if self.long_edge is not None and int(self.long_edge) < 1:
             raise ValueError(f"raster.long_edge must be a positive number of pixels or null, not {self.long_edge!r}")
 
+
+@dataclass
+class BenchKeypointsConfig:
+    """``bench.keypoints``: the authors' keypoint F1 and a one-to-one F1 (metrics.md §3)."""
+
+    radius_height_fraction: float
+    one_to_one_radius_px: float
+
+
+@dataclass
+class BenchReportConfig:
+    """``bench.report``: the summary tables and ``report.html``."""
+
+    sort_by: str
+    html: bool
+    max_html_cases: int
+    image_scale: int
+    gt_columns: list[str]
+    fidelity_columns: list[str]
+
+
+@dataclass
+class BenchConfig:
+    """The ``bench`` config group of ``polyvec-bench`` (``conf/bench/default.yaml``), one field per key."""
+
+    cases: list[str]
+    out: str
+    limit: int | None
+    run_pipeline: bool
+    raster: RasterParams
+    keypoints: BenchKeypointsConfig
+    topology: TopologyParams
+    report: BenchReportConfig

@@ -18,7 +18,7 @@ STAGE_VERSION = "2"  # 2: edits scaled onto a supersampled prep's keypoints
 class KeypointEditsConfig:
     """The ``keypoint_edits`` config section (``conf/keypoint_edits/default.yaml``), one field per key.
 
-    ``file`` and ``auto`` locate the edits file; the engine reads them (:mod:`pipeline.edits`) and
+    ``file`` and ``auto`` locate the edits file; the engine reads them (:mod:`pipeline.engine.edits`) and
     hands :func:`run` ``match_radius`` and the parsed file as ``edits`` instead, so that the key hashes
     the file's content, not its path.
     """

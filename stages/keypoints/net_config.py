@@ -1,6 +1,6 @@
 """Width and depth of the keypoint network, apart from the network itself.
 
-Why a module of its own: the configs (:mod:`pipeline.schema`) need this dataclass at every start-up,
+Why a module of its own: the configs (:mod:`pipeline.engine.config`) need this dataclass at every start-up,
 and :mod:`stages.keypoints.network` imports torch (about 1.5 s), which a run whose keypoints are
 cached never needs.
 """

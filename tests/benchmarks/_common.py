@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def stage_cfg(stage: str) -> dict:
     """A stage's default config section from conf/<stage>/default.yaml."""
-    from pipeline.registry import default_config
+    from pipeline.engine.config import default_config
 
     return default_config(stage)
 

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 CHILD = r"""
 import json, sys, time
 from hydra import compose, initialize_config_module
-from pipeline.runner import run_batch
+from pipeline.engine.execute.batch import run_batch
 image, store = sys.argv[1], sys.argv[2]
 with initialize_config_module(config_module="conf", version_base=None):
     cfg = compose(config_name="config", overrides=[f"store.path={store}", "runtime.cluster=sync"])

@@ -84,8 +84,9 @@ def main(argv: list[str]) -> int:
         if reused:
             print(f"                                   {reused.group(0)}")
         sys.path.insert(0, str(REPO))
-        from pipeline.page import latest_keys, write_page
-        from pipeline.store import ArtifactStore
+        from pipeline.engine.lookup import latest_keys
+        from pipeline.page import write_page
+        from pipeline.engine.store import ArtifactStore
 
         store = ArtifactStore(str(work / "artifacts"))
         keys = latest_keys(store, img)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import yaml
 
-from pipeline.runner import keep_network_memory
+from pipeline.engine.execute.process import keep_network_memory
 from stages.artifact import Artifact
 from stages.config import from_section
 from stages.keypoints import load_model, run
@@ -55,7 +55,7 @@ def main() -> None:
         if key not in cfg:
             raise SystemExit(f"bench_keypoints: no key {key!r} in the keypoints section")
         cfg[key] = yaml.safe_load(value)
-    keep_network_memory()  # as in the keypoints child that runs the stage (pipeline/runner.py)
+    keep_network_memory()  # as in the keypoints child that runs the stage (pipeline/engine/execute/child.py)
     prep = drawing(args.size)
     model, name = load_model(cfg["weights"])
     t = time.perf_counter()

@@ -24,7 +24,7 @@ DEFAULT = sorted((REPO.parent / "shared" / "data" / "drawings" / "scanned").glob
 CHILD = r"""
 import json, resource, sys, time
 from hydra import compose, initialize_config_module
-from pipeline.runner import run_batch
+from pipeline.engine.execute.batch import run_batch
 image, store, lam = sys.argv[1], sys.argv[2], sys.argv[3]
 overrides = [f"store.path={store}", "runtime.cluster=sync"] + ([f"flow.lam={lam}"] if lam != "-" else [])
 with initialize_config_module(config_module="conf", version_base=None):

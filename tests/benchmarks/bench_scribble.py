@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[2]
 CHILD = r"""
 import json, sys
 from hydra import compose, initialize_config_module
-from pipeline.runner import run_batch
+from pipeline.engine.execute.batch import run_batch
 image, store = sys.argv[1], sys.argv[2]
 with initialize_config_module(config_module="conf", version_base=None):
     cfg = compose(config_name="config", overrides=[f"store.path={store}", "runtime.cluster=sync"])
@@ -57,7 +57,7 @@ def export_seconds(store: Path, keys: dict[str, str]) -> tuple[float, int]:
     """Seconds of the export stage run directly on the stored upstream artifacts, and its curve count."""
     from omegaconf import OmegaConf
 
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
     from stages import export
 
     st = ArtifactStore(str(store), create=False)

@@ -9,7 +9,7 @@ Rows:
 
 - fresh install, first image: empty numba and config caches (``NUMBA_CACHE_DIR``, ``XDG_CACHE_HOME``)
   and an empty store; the package's compiled kernels are copied into the numba cache
-  (:mod:`pipeline.kernels`), and the same with ``runtime.shipped_kernels=false`` (their compile, as on
+  (:mod:`pipeline.engine.kernels.shipped`), and the same with ``runtime.shipped_kernels=false`` (their compile, as on
   a machine they do not fit);
 - empty store, kernels compiled: the default run (``runtime.cluster=auto``; the same command line again
   on the emptied store, as a user's next drawing) and ``runtime.cluster=sync`` (a new command line);
@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.registry import STAGES as REGISTRY
+from pipeline.engine.registry import STAGES as REGISTRY
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared" / "data" / "drawings"
@@ -148,7 +148,7 @@ def main() -> None:
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        # A fresh install: empty numba and config caches (pipeline.config_cache) of its own.
+        # A fresh install: empty numba and config caches (pipeline.engine.compose) of its own.
         env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "numba-cache"), XDG_CACHE_HOME=str(tmp / "cache"))
         img, out, store = str(args.image), str(tmp / "out"), str(tmp / "store")
         h, w = __import__("PIL.Image", fromlist=["Image"]).open(args.image).size[::-1]

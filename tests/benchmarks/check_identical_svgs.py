@@ -3,7 +3,8 @@
 Runs ``polyvec`` into a fresh store (in-process scheduler, so it takes one core) on
 
 1. the bundled example drawing (``polyvec`` with no input), and
-2. the 13 drawings of ``../shared/data/drawings`` (when present),
+2. the 13 drawings of ``../shared/data/drawings`` (when present), and
+3. with ``--realvec``, the 106 scored cases of ``../shared/data/realvec_dev`` (about 8 minutes on one core),
 
 then lists the sha256 of every ``.svg`` and ``.json`` written. With ``--ref DIR`` the files are
 compared with those of a reference run (made first, from the code before the change, with
@@ -31,6 +32,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 DRAWINGS = REPO.parent / "shared" / "data" / "drawings"
+REALVEC = REPO.parent / "shared" / "data" / "realvec_dev"
 
 
 def _polyvec(args: list[str], store: Path) -> None:
@@ -47,14 +49,17 @@ def _hashes(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*")) if p.suffix in (".svg", ".json") and p.is_file() and p.name != "hashes.json"}
 
 
-def run(out: Path) -> dict[str, str]:
-    """Vectorise the example and the drawings into ``out``; write and return ``hashes.json``."""
+def run(out: Path, realvec: bool = False) -> dict[str, str]:
+    """Vectorise the example and the drawings (and realvec_dev's cases) into ``out``; write and
+    return ``hashes.json``."""
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="pv-identical-") as tmp:
         t0 = time.perf_counter()
         _polyvec([f"output={out / 'example'}"], Path(tmp) / "store")
         if DRAWINGS.is_dir():
             _polyvec([str(DRAWINGS), f"output={out / 'drawings'}"], Path(tmp) / "store")
+        if realvec and REALVEC.is_dir():
+            _polyvec([str(REALVEC), f"output={out / 'realvec_dev'}"], Path(tmp) / "store")
         print(f"vectorised in {time.perf_counter() - t0:.0f} s")
     hashes = _hashes(out)
     (out / "hashes.json").write_text(json.dumps(hashes, indent=1) + "\n")
@@ -80,8 +85,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="folder for this run's SVGs")
     ap.add_argument("--ref", type=Path, help="a reference run's folder to compare with")
+    ap.add_argument("--realvec", action="store_true", help="realvec_dev's cases as well")
     a = ap.parse_args()
-    new = run(a.out.resolve())
+    new = run(a.out.resolve(), a.realvec)
     if a.ref is not None:
         ref = _hashes(a.ref.resolve())
         sys.exit(0 if compare(new, ref) else 1)

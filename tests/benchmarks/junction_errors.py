@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 SCORER = REPO.parent / "shared" / "tools"
 
 from pipeline.inspect import resolve  # noqa: E402
-from pipeline.store import ArtifactStore  # noqa: E402
+from pipeline.engine.store import ArtifactStore  # noqa: E402
 from stages.keypoints.codes import TYPE_CODES  # noqa: E402
 
 #: Keypoint type names by code, for the classes.

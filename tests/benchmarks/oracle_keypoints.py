@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from pipeline.inspect import resolve  # noqa: E402
-from pipeline.store import ArtifactStore  # noqa: E402
+from pipeline.engine.store import ArtifactStore  # noqa: E402
 from stages.keypoint_edits import FORMAT, TYPE_CODES  # noqa: E402
 
 #: Case JSON key of each keypoint type's labels.

@@ -48,7 +48,7 @@ DATA = SHARED / "realvec_dev"
 CACHE = Path(os.environ.get("POLYVEC_QUALITY_CACHE", "/tmp/polyvec-quality"))
 sys.path.insert(0, str(ROOT))
 
-from pipeline.registry import STAGES as REGISTRY  # noqa: E402  (after the sys.path line)
+from pipeline.engine.registry import STAGES as REGISTRY  # noqa: E402  (after the sys.path line)
 
 # The DAG of pipeline.registry without keypoint_edits: here the topology reads the keypoints directly.
 STAGES = tuple(s.name for s in REGISTRY if s.name != "keypoint_edits")

@@ -28,7 +28,7 @@ from stages.topology.steiner import steiner_tree  # noqa: E402
 def record(folder: Path) -> list:
     from hydra import compose, initialize_config_module
 
-    from pipeline.runner import run_batch
+    from pipeline.engine.execute.batch import run_batch
 
     calls = []
     orig = ex.steiner_tree

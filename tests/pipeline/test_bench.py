@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from pipeline.bench import Case, discover_cases, final_curves, load_case, score_case
-from pipeline.cli import REPO_CONF
-from pipeline.runner import BatchResult, TaskResult
-from pipeline.store import ArtifactStore
+from pipeline.engine.config import CONF_DIR as REPO_CONF
+from pipeline.engine.execute.base import BatchResult, TaskResult
+from pipeline.engine.store import ArtifactStore
 from stages import synthetic
 from stages.artifact import Artifact, pack_ragged
 
@@ -205,7 +205,7 @@ def test_every_column_has_a_unit_and_small_distances_show():
     """Issue 18 item 18: a 0.1–0.4 px Chamfer printed 0.000; every column of the default tables and
     of the report names its unit, and distances are shown in ‰ of the long edge with 3 decimals."""
     from pipeline.bench_report import _fmt, _head, column_unit
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
     from tests.benchmarks._common import stage_cfg
 
     rep = stage_cfg("bench")["report"]

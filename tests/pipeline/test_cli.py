@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.registry import STAGES
+from pipeline.engine.registry import STAGES
 from stages import synthetic
 
 
@@ -576,8 +576,8 @@ def _interrupted_once(proc) -> None:
 
 
 def test_the_ctrl_c_line_counts_images_done_and_stage_results_stored():
-    from pipeline.cli import _Progress
-    from pipeline.runner import TaskResult
+    from pipeline.console import _Progress
+    from pipeline.engine.execute.base import TaskResult
 
     progress, seen = _Progress(), []
     progress.start(3, "export")
@@ -787,7 +787,7 @@ def test_first_run_says_it_compiles_kernels(tmp_path):
 
 def test_keypoints_edits_is_read_as_the_edits_stage_file():
     """The issue's spelling ``keypoints.edits=FILE`` reaches the edits stage, not the detector's config."""
-    from pipeline.cli import split_arguments
+    from pipeline.hydra_command import split_arguments
 
     args, paths = split_arguments(["cat.png", "keypoints.edits=cat.keypoints.json", "flow.lam=0.5"])
     assert paths == ["cat.png"]
@@ -816,12 +816,12 @@ def test_a_plain_command_line_composes_its_config_once(monkeypatch, tmp_path):
     """One job's plain overrides are composed once (Hydra's compose API), into the config that
     ``@hydra.main`` gives; a sweep or a ``hydra.`` key still goes through Hydra's app (issue 14:
     ``@hydra.main`` composes twice, ~0.2 s of every run). An empty config cache of its own: a cached
-    composition (pipeline.config_cache) is not composed at all."""
+    composition (pipeline.engine.compose) is not composed at all."""
     import hydra
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from omegaconf import OmegaConf
 
-    from pipeline.cli import ExitCode, check_overrides
+    from pipeline.hydra_command import ExitCode, check_overrides
 
     loads = []
     original = ConfigLoaderImpl.load_configuration
@@ -868,7 +868,7 @@ def test_a_plain_sweep_runs_the_jobs_hydra_would_in_their_folders(monkeypatch, t
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from omegaconf import OmegaConf
 
-    from pipeline.cli import ExitCode, multirun_folder
+    from pipeline.hydra_command import ExitCode, multirun_folder
 
     loads = []
     original = ConfigLoaderImpl.load_configuration
@@ -945,7 +945,7 @@ def test_a_run_makes_few_full_garbage_collections(tmp_path):
     import subprocess
     import sys
 
-    from pipeline.runner import FULL_COLLECTION_EVERY
+    from pipeline.engine.execute.process import FULL_COLLECTION_EVERY
 
     proc = subprocess.run([sys.executable, "-c", _GC_AT_EXIT, "runtime.cluster=sync"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=300)
@@ -957,13 +957,13 @@ def test_a_run_makes_few_full_garbage_collections(tmp_path):
 
 
 def test_a_composed_config_is_cached_and_composed_again_when_its_files_change(tmp_path, monkeypatch):
-    """pipeline.config_cache: the second composition of a command line is read back (the planted
+    """pipeline.engine.compose: the second composition of a command line is read back (the planted
     entry proves it), a changed conf file or override makes a new entry, a corrupt one is recomposed."""
     import shutil
 
     from omegaconf import OmegaConf
 
-    from pipeline import config_cache
+    from pipeline.engine import compose as config_cache
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     first = config_cache.compose_config("config", ["flow.lam=0.3"])
@@ -997,13 +997,13 @@ _HYDRAS_VALUES = ["007", "1_000", ".5", "5.", "1e3", "inf", "-inf", "nan", "NaN"
 
 
 def test_the_simplest_overrides_are_read_as_hydra_reads_them_without_hydra():
-    """pipeline.config_cache.plain_values: where it reads a line (numbers, true/false/null, words and
+    """pipeline.engine.compose.plain_values: where it reads a line (numbers, true/false/null, words and
     paths), its keys, values and types are Hydra's parser's; anything else (a float Hydra spells otherwise,
     inf, a capitalised bool, a sweep, a list, a quote, an interpolation, a space, a ``hydra.`` key) is
     left to Hydra. A λ re-run with a new value then imports no Hydra (issue 14: ~0.13 s)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from pipeline.config_cache import plain_values
+    from pipeline.engine.compose import plain_values
 
     parser = OverridesParser.create()
     for value in _SIMPLE_VALUES:
@@ -1026,7 +1026,7 @@ def test_a_lambda_rerun_with_a_new_value_imports_no_hydra(tmp_path):
     import sys
 
     env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
-    code = ("import sys\nfrom pipeline.cli import check_overrides\nfrom pipeline.config_cache import compose_config\n"
+    code = ("import sys\nfrom pipeline.hydra_command import check_overrides\nfrom pipeline.engine.compose import compose_config\n"
             "args = ['output=o', sys.argv[1]]\nassert check_overrides(args)\n"
             "print(compose_config('config', args).flow.lam, 'hydra' in sys.modules)\n")
     run = [subprocess.run([sys.executable, "-c", code, f"flow.lam={lam}"], capture_output=True, text=True, env=env)
@@ -1037,14 +1037,14 @@ def test_a_lambda_rerun_with_a_new_value_imports_no_hydra(tmp_path):
 
 
 def test_a_line_that_changes_only_values_starts_from_the_cached_base(tmp_path, monkeypatch):
-    """pipeline.config_cache: ``output=…``, ``store.path=…``, ``flow.lam=…`` set on the cached
+    """pipeline.engine.compose: ``output=…``, ``store.path=…``, ``flow.lam=…`` set on the cached
     composition of the other overrides give Hydra's config exactly (no composition at all); a group, a
     list, an unknown key or a refused value go through Hydra, with Hydra's error."""
     from hydra import compose, initialize_config_module
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from omegaconf import OmegaConf
 
-    from pipeline import config_cache
+    from pipeline.engine import compose as config_cache
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     config_cache.compose_config("config", ["runtime=local"])
@@ -1099,7 +1099,7 @@ def test_repeated_commands_read_their_config_from_the_cache(tmp_path, cli, monke
 @pytest.mark.skipif(sys.platform == "win32", reason="needs a pseudo-terminal")
 def test_in_a_terminal_the_progress_display_redraws_at_most_twice_a_second(tmp_path):
     """Run in a terminal (a pseudo-terminal on stdin, stdout and stderr), `polyvec` shows one bar per
-    stage while it works, redrawn at most :data:`pipeline.cli.REFRESH_PER_SECOND` (2) times a second:
+    stage while it works, redrawn at most :data:`pipeline.console.REFRESH_PER_SECOND` (2) times a second:
     each redraw renders every row on a thread of the process whose stages need the GIL (rich's ten a
     second made a drawing's run 0.1–0.6 s longer; stages/DECISIONS.md, engine)."""
     import os
@@ -1107,7 +1107,7 @@ def test_in_a_terminal_the_progress_display_redraws_at_most_twice_a_second(tmp_p
     import subprocess
     import time
 
-    from pipeline.cli import REFRESH_PER_SECOND
+    from pipeline.console import REFRESH_PER_SECOND
 
     primary, secondary = pty.openpty()
     started = time.monotonic()

@@ -12,8 +12,14 @@ import time
 
 import pytest
 
-from pipeline.registry import active_stages
-from pipeline.runner import close_client, run_batch
+from pipeline.engine.execute import batch as batch_mod
+from pipeline.engine.execute import in_process, node, process
+from pipeline.engine.execute import child as child_process
+from pipeline.engine.execute.base import BatchResult, TaskResult
+from pipeline.engine.execute.batch import run_batch
+from pipeline.engine.execute.dask_cluster import close_client
+from pipeline.engine.plan import Task
+from pipeline.engine.registry import active_stages
 from stages import synthetic
 
 
@@ -74,7 +80,7 @@ def test_local_dask_cluster(tmp_path, images, compose_cfg):
 def test_local_cluster_runs_the_stages_with_most_work_behind_them_first(tmp_path, compose_cfg):
     """Dask follows the engine's priorities, root tasks included: on one worker, every image's prep (the
     most stages behind it) runs before any field, where image after image would interleave them."""
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
 
     paths = []
     for k in range(4):
@@ -100,8 +106,8 @@ def test_local_cluster_runs_the_stages_with_most_work_behind_them_first(tmp_path
 
 
 def test_batch_priorities_start_images_in_order_and_end_on_short_tasks():
-    from pipeline.registry import BY_NAME, height
-    from pipeline.runner import TAIL_IMAGES, priority
+    from pipeline.engine.registry import BY_NAME, height
+    from pipeline.engine.execute.dask_cluster import TAIL_IMAGES, priority
 
     assert height("export") == 1 and height("prep") == max(height(s) for s in BY_NAME)
     assert all(height(s) > height(d) for d in BY_NAME for s in BY_NAME[d].inputs)
@@ -118,7 +124,7 @@ def test_local_cluster_workers_leave_without_interpreter_teardown(tmp_path, imag
     """Once the batch is done, a local worker holding the stages' modules exits at once (os._exit after
     the exit handlers): an object that only the interpreter's teardown would collect is never collected.
     And it ran its tasks without dask's profiler."""
-    from pipeline.runner import get_client
+    from pipeline.engine.execute.dask_cluster import get_client
 
     marker_dir = tmp_path / "torn_down"
     marker_dir.mkdir()
@@ -185,7 +191,7 @@ def test_a_process_that_runs_stages_reuses_freed_arrays_memory():
     import inspect
 
     child = inspect.getsource(_page_faults_of_fresh_arrays) + (
-        "import sys\nfrom pipeline.runner import reuse_freed_memory\n"
+        "import sys\nfrom pipeline.engine.execute.process import reuse_freed_memory\n"
         "if sys.argv[1] == 'tuned':\n    reuse_freed_memory()\nprint(_page_faults_of_fresh_arrays())\n")
     faults = {}
     for mode in ("default", "tuned"):
@@ -201,8 +207,8 @@ def test_the_keypoints_child_keeps_arrays_over_the_mmap_ceiling_in_its_heap():
     """Arrays over glibc's largest mmap threshold (32 MiB; the network's 63-MB activations at 704²)
     are fresh mappings even after ``reuse_freed_memory``; ``keep_network_memory`` serves them from the heap."""
     child = (
-        "import resource, sys\nimport torch\nfrom pipeline import runner\n"
-        "runner.keep_network_memory() if sys.argv[1] == 'network' else runner.reuse_freed_memory()\n"
+        "import resource, sys\nimport torch\nfrom pipeline.engine.execute import process\n"
+        "process.keep_network_memory() if sys.argv[1] == 'network' else process.reuse_freed_memory()\n"
         # the heap grows until a free run fits torch's aligned request (memalign pads it, and small
         # allocations between two arrays split the freed ones): at most 6 arrays here, by 40 runs
         "for _ in range(8):\n    torch.ones(5 << 20, dtype=torch.float64).sum()\n"
@@ -220,7 +226,7 @@ def test_the_keypoints_child_sets_its_heap_before_its_stages_load():
     """The child (``_serve_tasks``) keeps its network's memory from its first task on."""
     import inspect
 
-    from pipeline.runner import _serve_tasks
+    from pipeline.engine.execute.child import serve_tasks as _serve_tasks
 
     body = inspect.getsource(_serve_tasks)
     assert body.index("keep_network_memory()") < body.index("BY_NAME[name].load()")
@@ -230,7 +236,7 @@ def test_the_keypoints_child_sets_its_heap_before_its_stages_load():
 def test_local_cluster_workers_reuse_freed_arrays_memory(tmp_path, images, compose_cfg):
     """A local worker that has run a task keeps freed arrays' memory for the next ones (dask's own
     setting gave it back and faulted it in again: a quarter of a 2-worker batch's CPU seconds)."""
-    from pipeline.runner import get_client
+    from pipeline.engine.execute.dask_cluster import get_client
 
     cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.until=prep", "runtime.workers=1",
                       "runtime.cluster=local")
@@ -273,12 +279,12 @@ def test_existing_scheduler_and_worker_processes(tmp_path, images, compose_cfg):
         batch = run_batch(images, cfg)
         assert not batch.failed_images
         assert _statuses(batch)["graph"] == ["computed", "computed"]
-        from pipeline.store import ArtifactStore
+        from pipeline.engine.store import ArtifactStore
 
         manifest = ArtifactStore(tmp_path / "store").manifest("field", batch.keys(str(images[0]))["field"])
         assert manifest["pid"] != os.getpid()  # computed by the external worker
         # The package's compiled kernels were copied into the worker's cache: it compiled none.
-        from pipeline.kernels import SHIPPED, MANIFEST
+        from pipeline.engine.kernels.shipped import SHIPPED, MANIFEST
 
         if json.loads((SHIPPED / MANIFEST).read_text())["target"]["cpu_name"] == os.environ.get("NUMBA_CPU_NAME"):
             from distributed import Client
@@ -312,7 +318,7 @@ def test_until_and_unknown_stage():
 def test_auto_cluster_runs_a_few_images_in_process_and_more_on_dask():
     from types import SimpleNamespace
 
-    from pipeline.runner import SYNC_MAX_IMAGES, cluster_mode
+    from pipeline.engine.execute.batch import SYNC_MAX_IMAGES, cluster_mode
 
     def tasks(*stages):
         return [SimpleNamespace(stage=s) for s in stages]
@@ -338,30 +344,28 @@ def test_auto_cluster_runs_a_few_images_in_process_and_more_on_dask():
 
 def test_artifact_memo_reuses_and_protects_loaded_artifacts(tmp_path):
     import numpy as np
-
-    from pipeline import runner
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
     from stages.artifact import Artifact
 
     store = ArtifactStore(tmp_path / "store")
     store.save("prep", "k" * 64, Artifact(arrays={"grey": np.ones((4, 4), np.float32)}, data={"n": 1}), {})
-    runner._MEMO.clear()
-    a = runner.load_artifact(store, "prep", "k" * 64)
-    assert runner.load_artifact(store, "prep", "k" * 64) is a  # the second read comes from the memo
+    node._MEMO.clear()
+    a = node.load_artifact(store, "prep", "k" * 64)
+    assert node.load_artifact(store, "prep", "k" * 64) is a  # the second read comes from the memo
     with pytest.raises(ValueError):
         a["grey"][0, 0] = 0.0  # a stage must not modify its inputs: the next stage shares them
-    for i in range(runner.MEMO_SIZE + 1):  # bounded: old artifacts are dropped
-        runner._remember("x", str(i), Artifact(arrays={}, data={}))
-    assert ("prep", "k" * 64) not in runner._MEMO and len(runner._MEMO) == runner.MEMO_SIZE
-    big = Artifact(arrays={"a": np.zeros(runner.MEMO_BYTES // 8 + 1)}, data={})
-    runner._remember("big", "b", big)  # larger than the byte budget: not kept
-    assert ("big", "b") not in runner._MEMO
-    runner._MEMO.clear()
+    for i in range(node.MEMO_SIZE + 1):  # bounded: old artifacts are dropped
+        node._remember("x", str(i), Artifact(arrays={}, data={}))
+    assert ("prep", "k" * 64) not in node._MEMO and len(node._MEMO) == node.MEMO_SIZE
+    big = Artifact(arrays={"a": np.zeros(node.MEMO_BYTES // 8 + 1)}, data={})
+    node._remember("big", "b", big)  # larger than the byte budget: not kept
+    assert ("big", "b") not in node._MEMO
+    node._MEMO.clear()
 
 
 def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
     """A broken install (a stage package gone) is an error, never a shorter DAG."""
-    import pipeline.registry as registry
+    import pipeline.engine.registry as registry
 
     broken = tuple(registry.StageSpec(s.name, "stages.no_such_module", s.inputs, s.persists) if s.name == "graph"
                    else s for s in registry.STAGES)
@@ -374,7 +378,7 @@ def test_a_stage_whose_module_is_missing_fails_the_run(monkeypatch):
 def test_a_stage_imports_its_code_only_when_it_computes(tmp_path, images, compose_cfg, monkeypatch):
     """A run imports a stage's package (STAGE_VERSION, configs); its code loads only when the stage has work,
     and code that cannot load (a broken install) stops the run once, before any work (issue 14)."""
-    import pipeline.registry as registry
+    import pipeline.engine.registry as registry
 
     pkg = tmp_path / "fake_field"
     pkg.mkdir()
@@ -423,7 +427,7 @@ def _same_artifact(a, b):
 def test_a_keypoint_edit_reruns_the_flow_on_the_changed_paths_only(tmp_path, compose_cfg):
     """After a keypoint correction the flow reuses the unchanged paths' stored results, and the flow
     artifact and SVG are byte-identical to those of a run with the same edits on an empty store."""
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
 
     img = _example(tmp_path / "in")
     cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync")
@@ -450,7 +454,7 @@ def test_a_corrupted_or_missing_stored_path_is_flowed_again(tmp_path, compose_cf
     import json
     import shutil
 
-    from pipeline.store import PACK_MAGIC, ArtifactStore
+    from pipeline.engine.store import PACK_MAGIC, ArtifactStore
 
     img = _example(tmp_path / "in")
     cfg = compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync", "runtime.until=flow")
@@ -478,7 +482,7 @@ def test_a_corrupted_or_missing_stored_path_is_flowed_again(tmp_path, compose_cf
 def test_stored_paths_are_not_reused_under_another_iteration_count(tmp_path, compose_cfg):
     """The max_vertices guard lowers the iterations of every path: paths flowed under it are keyed
     apart; a max_vertices that does not bind changes nothing a path depends on."""
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
 
     img = _example(tmp_path / "in")
     store = f"store.path={tmp_path / 'store'}"
@@ -502,8 +506,6 @@ def test_an_in_process_run_lets_numba_use_its_pool_and_workers_stay_on_one_threa
     thread count); a worker beside another keeps one thread."""
     import numba
 
-    from pipeline import runner
-
     calls = []
     monkeypatch.setattr(numba, "set_num_threads", calls.append)
     image = tmp_path / "line.png"
@@ -512,18 +514,16 @@ def test_an_in_process_run_lets_numba_use_its_pool_and_workers_stay_on_one_threa
                                    "runtime.until=field"))
     assert calls and set(calls) == {numba.config.NUMBA_NUM_THREADS}
     calls.clear()
-    runner._pin_threads()
+    process.pin_threads()
     assert calls == [1]
 
 
 def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_order(monkeypatch):
-    """_run_sync: two tasks at once where the DAG allows (keypoints ‖ field → graph), never a task
+    """The in-process executor: two tasks at once where the DAG allows (keypoints ‖ field → graph), never a task
     before its inputs, and one image's failure skips only what reads it."""
     import threading
     import time
-
-    from pipeline import runner
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
 
     log, lock = [], threading.Lock()
 
@@ -536,22 +536,22 @@ def test_in_process_scheduler_runs_the_keypoints_beside_the_field_and_keeps_dag_
             status = "skipped"
         with lock:
             log.append(("end", task.stage, time.perf_counter()))
-        return runner.TaskResult(task.image, task.stage, task.key, status)
+        return TaskResult(task.image, task.stage, task.key, status)
 
-    monkeypatch.setattr(runner, "execute", fake_execute)
-    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+    monkeypatch.setattr(in_process, "execute", fake_execute)
+    tasks = [Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
 
     def run(pixels):
-        monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
+        monkeypatch.setattr(in_process, "_prep_pixels", lambda url, key: pixels)
         log.clear()
-        batch = runner.BatchResult(stages=[s.name for s in STAGES])
+        batch = BatchResult(stages=[s.name for s in STAGES])
         batch.results["a.png"] = {}
         reported = []
-        runner._run_sync([tasks], "unused", batch, reported.append)
+        in_process.InProcessExecutor().run([tasks], "unused", batch, reported.append)
         return {(kind, stage): t for kind, stage, t in log}, reported
 
     # a large drawing: one task at a time (peak memory of its largest stage)
-    when, _ = run(runner.SYNC_PARALLEL_MAX_PIXELS + 1)
+    when, _ = run(in_process.SYNC_PARALLEL_MAX_PIXELS + 1)
     assert when[("start", "field")] >= when[("end", "keypoints")] or when[("start", "keypoints")] >= when[("end", "field")]
     when, reported = run(700 * 700)
     # the keypoints and the field ran at once
@@ -573,9 +573,7 @@ def _logged_scheduler(monkeypatch, pixels, cost=None, images=("a.png",)):
     """
     import threading
     import time
-
-    from pipeline import runner
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
 
     log, lock = [], threading.Lock()
 
@@ -587,7 +585,7 @@ def _logged_scheduler(monkeypatch, pixels, cost=None, images=("a.png",)):
         time.sleep((cost or {}).get(task.stage, 0.15))
         with lock:
             log.append(("end", name, time.perf_counter()))
-        return runner.TaskResult(task.image, task.stage, task.key, "computed")
+        return TaskResult(task.image, task.stage, task.key, "computed")
 
     class FakeChild:   # the child's interface
         def __init__(self, stages):
@@ -603,18 +601,18 @@ def _logged_scheduler(monkeypatch, pixels, cost=None, images=("a.png",)):
         def join(self, timeout_s=5.0):
             pass
 
-    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False: logged(task))
-    monkeypatch.setattr(runner, "_ChildTasks", FakeChild)
-    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: pixels)
-    pending = [[runner.Task(image, image, s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
+    monkeypatch.setattr(in_process, "execute", lambda task, store_url, *up, alone=False: logged(task))
+    monkeypatch.setattr(in_process, "ChildTasks", FakeChild)
+    monkeypatch.setattr(in_process, "_prep_pixels", lambda url, key: pixels)
+    pending = [[Task(image, image, s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in STAGES]
                for image in images]
 
     def run(in_child):
         log.clear()
-        batch = runner.BatchResult(stages=[s.name for s in STAGES])
+        batch = BatchResult(stages=[s.name for s in STAGES])
         for image in images:
             batch.results[image] = {}
-        runner._run_sync(pending, "unused", batch, lambda r: None, in_child=in_child)
+        in_process.InProcessExecutor(in_child).run(pending, "unused", batch, lambda r: None)
         assert all(r.status == "computed" for image in images for r in batch.results[image].values())
         return {(kind, name): t for kind, name, t in log}
 
@@ -624,11 +622,10 @@ def _logged_scheduler(monkeypatch, pixels, cost=None, images=("a.png",)):
 def test_a_large_drawing_still_runs_its_keypoints_child_beside_this_process(monkeypatch):
     """Over ``SYNC_PARALLEL_MAX_PIXELS`` this process runs a task at a time, but the keypoints child
     (its own memory) still runs beside it: a 300-dpi A4 page took the sum of the two (42 s, 32 s now)."""
-    from pipeline import runner
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
 
-    run = _logged_scheduler(monkeypatch, runner.SYNC_PARALLEL_MAX_PIXELS + 1)
-    when = run(runner.CHILD_STAGES)
+    run = _logged_scheduler(monkeypatch, in_process.SYNC_PARALLEL_MAX_PIXELS + 1)
+    when = run(child_process.CHILD_STAGES)
     assert when[("start", "field")] < when[("end", "keypoints")] and when[("start", "keypoints")] < when[("end", "field")]
     # never two tasks at once in this process: each task of this process starts after the previous ended
     mine = sorted((when[("start", s.name)], when[("end", s.name)]) for s in STAGES if when[("where", s.name)] == "here")
@@ -641,17 +638,16 @@ def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monke
     """While the child computes the keypoints, the graph and then the extension (it needs no torch) run
     on this process's free thread, the graph first, instead of queueing behind the keypoints; with the
     child idle when the extension is ready, the extension runs there, beside the graph."""
-    from pipeline import runner
 
     run = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.6, "field": 0.05, "graph": 0.1})
-    when = run(runner.CHILD_STAGES)
-    assert set(runner.CHILD_STAGES) == {"keypoints", "extension"}
+    when = run(child_process.CHILD_STAGES)
+    assert set(child_process.CHILD_STAGES) == {"keypoints", "extension"}
     assert when[("where", "keypoints")] == "child" and when[("where", "extension")] == "here"
     assert when[("start", "graph")] < when[("end", "keypoints")]     # not queued behind the child
     assert when[("end", "graph")] <= when[("start", "extension")] < when[("end", "keypoints")]
     # a drawing whose keypoints end first: its extension goes to the child, beside the graph here
     when = _logged_scheduler(monkeypatch, 700 * 700, cost={"keypoints": 0.1, "field": 0.05, "graph": 0.6})(
-        runner.CHILD_STAGES)
+        child_process.CHILD_STAGES)
     assert when[("where", "extension")] == "child"
     assert when[("start", "extension")] >= when[("end", "keypoints")]
     assert when[("start", "extension")] < when[("end", "graph")]
@@ -660,10 +656,9 @@ def test_the_child_runs_one_task_at_a_time_and_never_holds_up_this_process(monke
 def test_with_stages_of_its_own_to_run_this_process_leaves_the_extension_to_the_child(monkeypatch):
     """Two drawings: while the child computes keypoints, this process runs the other drawing's field and
     graph before it takes an extension (the child would compute it later beside them)."""
-    from pipeline import runner
 
     when = _logged_scheduler(monkeypatch, 700 * 700, images=("a.png", "b.png"),
-                             cost={"keypoints": 0.5, "prep": 0.05, "field": 0.05, "graph": 0.1})(runner.CHILD_STAGES)
+                             cost={"keypoints": 0.5, "prep": 0.05, "field": 0.05, "graph": 0.1})(child_process.CHILD_STAGES)
     assert when[("start", "b.field")] < when[("end", "keypoints")]   # the child busy meanwhile
     assert when[("start", "graph")] < when[("start", "b.field")] < when[("start", "extension")]
     assert when[("start", "b.graph")] < when[("start", "extension")]
@@ -672,19 +667,18 @@ def test_with_stages_of_its_own_to_run_this_process_leaves_the_extension_to_the_
 def test_an_extension_without_keypoints_to_compute_starts_no_child(monkeypatch):
     """A run whose keypoints are stored (a field setting changed) computes the extension here: no child
     process, with its imports, is started for it."""
-    from pipeline import runner
-    from pipeline.registry import STAGES
+    from pipeline.engine.registry import STAGES
 
     started = []
-    monkeypatch.setattr(runner, "_ChildTasks", lambda *a, **k: started.append(a))
-    monkeypatch.setattr(runner, "execute", lambda task, store_url, *up, alone=False:
-                        runner.TaskResult(task.image, task.stage, task.key, "computed"))
-    monkeypatch.setattr(runner, "_prep_pixels", lambda url, key: 700 * 700)
+    monkeypatch.setattr(in_process, "ChildTasks", lambda *a, **k: started.append(a))
+    monkeypatch.setattr(in_process, "execute", lambda task, store_url, *up, alone=False:
+                        TaskResult(task.image, task.stage, task.key, "computed"))
+    monkeypatch.setattr(in_process, "_prep_pixels", lambda url, key: 700 * 700)
     todo = [s for s in STAGES if s.name in ("extension", "flow", "select", "export")]
-    tasks = [runner.Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in todo]
-    batch = runner.BatchResult(stages=[s.name for s in STAGES])
+    tasks = [Task("a.png", "k", s.name, "1", s.name, {i: i for i in s.inputs}, {}) for s in todo]
+    batch = BatchResult(stages=[s.name for s in STAGES])
     batch.results["a.png"] = {}
-    runner._run_sync([tasks], "unused", batch, lambda r: None, in_child=runner.CHILD_STAGES)
+    in_process.InProcessExecutor(child_process.CHILD_STAGES).run([tasks], "unused", batch, lambda r: None)
     assert [r.status for r in batch.results["a.png"].values()] == ["computed"] * 4
     assert not started
 
@@ -717,10 +711,10 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
     assert pids["false"]["keypoints"] == pids["false"]["extension"] == os.getpid()
     assert keys["true"] == keys["false"]
     # a field setting changed: the keypoints are stored, the extension is computed here, and no child starts
-    from pipeline import runner
 
-    started, child = [], runner._ChildTasks
-    monkeypatch.setattr(runner, "_ChildTasks", lambda *a, **k: started.append(a) or child(*a, **k))
+    started, child = [], in_process.ChildTasks
+    for module in (batch_mod, in_process):   # the batch starts the child early; the executor would otherwise
+        monkeypatch.setattr(module, "ChildTasks", lambda *a, **k: started.append(a) or child(*a, **k))
     batch = run_batch([image], compose_cfg(f"store.path={tmp_path / 'store-true'}", "runtime.cluster=sync",
                                            "field.alpha=0.2"))
     status = {stage: r.status for stage, r in batch.results[str(image)].items()}
@@ -728,7 +722,7 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
     manifest = json.loads(next((tmp_path / "store-true").glob(
         f"extension/*/{batch.results[str(image)]['extension'].key}/manifest.json")).read_text())
     assert manifest["pid"] == os.getpid() and not started
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.store import ArtifactStore
     a = ArtifactStore(str(tmp_path / "store-true")).load("keypoints", keys["true"])
     b = ArtifactStore(str(tmp_path / "store-false")).load("keypoints", keys["false"])
     assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["heatmaps"], b["heatmaps"])
@@ -737,8 +731,7 @@ def test_in_process_runs_compute_the_keypoints_in_a_child_process(tmp_path, comp
 def test_the_keypoints_child_preloads_torch_and_the_networks_before_its_first_task(monkeypatch):
     """The child imports torch and loads the keypoints' weights and typing as soon as it starts (its
     first task used to pay ~1.1 s for them); a config its preload refuses is left to the task to report."""
-    from pipeline import runner
-    from pipeline.registry import default_config
+    from pipeline.engine.config import default_config
     from stages.keypoints import stage as kp
 
     class Conn:                # no task: the child is told to stop at once
@@ -751,16 +744,16 @@ def test_the_keypoints_child_preloads_torch_and_the_networks_before_its_first_ta
     def leave(code):
         raise Exit(code)
 
-    monkeypatch.setattr(runner.os, "_exit", leave)
-    monkeypatch.setattr(runner, "THREAD_ENV", {})       # this process's environment stays as it is
+    monkeypatch.setattr(child_process.os, "_exit", leave)
+    monkeypatch.setattr(child_process, "THREAD_ENV", {})       # this process's environment stays as it is
     monkeypatch.setattr(kp, "_MODELS", {})
     monkeypatch.setattr(kp, "_TYPE_CLASSIFIERS", {})
     with pytest.raises(Exit):
-        runner._serve_tasks(Conn(), ("keypoints", "extension"), {"keypoints": default_config("keypoints")})
+        child_process.serve_tasks(Conn(), ("keypoints", "extension"), {"keypoints": default_config("keypoints")})
     assert len(kp._MODELS) == 1 and len(kp._TYPE_CLASSIFIERS) == 1 and "torch" in sys.modules
     kp._MODELS.clear()
     with pytest.raises(Exit):                              # an unknown key: no preload, no error here
-        runner._serve_tasks(Conn(), ("keypoints",), {"keypoints": {**default_config("keypoints"), "bogus": 1}})
+        child_process.serve_tasks(Conn(), ("keypoints",), {"keypoints": {**default_config("keypoints"), "bogus": 1}})
     assert not kp._MODELS
 
 
@@ -768,14 +761,13 @@ def test_a_failed_code_check_leaves_no_keypoints_child(tmp_path, images, compose
     """The keypoints child starts before the stages' code is checked; a check that fails stops it."""
     import multiprocessing
 
-    import pipeline.registry as registry
-    from pipeline import runner
+    import pipeline.engine.registry as registry
 
     def broken(spec, code=False):
         if code and spec.name == "graph":
             raise registry.StageUnavailable("stage graph: broken on purpose")
 
-    monkeypatch.setattr(runner, "check_stage", broken)
+    monkeypatch.setattr(batch_mod, "check_stage", broken)
     with pytest.raises(registry.StageUnavailable, match="broken on purpose"):
         run_batch(images[:1], compose_cfg(f"store.path={tmp_path / 'store'}", "runtime.cluster=sync"))
     assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
@@ -789,8 +781,9 @@ def test_the_keypoints_child_imports_no_more_than_its_stages_need():
     script = (
         "import sys, yaml\n"
         "import pipeline.cli\n"
-        "from pipeline.runner import BY_NAME, CHILD_STAGES\n"
-        "from pipeline.registry import CONF_DIR\n"
+        "from pipeline.engine.config import CONF_DIR\n"
+        "from pipeline.engine.execute.child import CHILD_STAGES\n"
+        "from pipeline.engine.registry import BY_NAME\n"
         "for name in CHILD_STAGES:\n"
         "    mod = BY_NAME[name].load()\n"
         "    mod.run\n"
@@ -807,9 +800,9 @@ def test_the_keypoints_child_imports_no_more_than_its_stages_need():
 # early.pid and, as the process exits (before multiprocessing ends its children), whether it lives.
 _EARLY_CHILD_RUN = """
 import atexit, sys
-from pipeline import launch
-launch.start_early()
-proc = launch._EARLY[0][0]
+from pipeline.engine.execute import early_child
+early_child.start_early()
+proc = early_child._EARLY[0][0]
 open("early.pid", "w").write(str(proc.pid))
 atexit.register(lambda: open("alive.txt", "w").write(str(proc.is_alive())))
 sys.argv = ["polyvec", *sys.argv[1:]]
@@ -861,8 +854,8 @@ def test_the_early_keypoints_child_leaves_when_polyvec_is_killed(tmp_path):
     driver go (killed, or ended by Ctrl-C without its exit handlers) instead of waiting for ever."""
     import signal
 
-    script = ("import time\nfrom pipeline import launch\nlaunch.start_early()\n"
-              "print(launch._EARLY[0][0].pid, flush=True)\ntime.sleep(600)\n")
+    script = ("import time\nfrom pipeline.engine.execute import early_child\nearly_child.start_early()\n"
+              "print(early_child._EARLY[0][0].pid, flush=True)\ntime.sleep(600)\n")
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
     early = int(proc.stdout.readline())
     time.sleep(0.5)

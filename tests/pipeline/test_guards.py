@@ -41,7 +41,7 @@ def test_tiny_guards_degrade_and_say_so(tmp_path, cli):
 
 def test_default_bounds_leave_a_plain_drawing_alone(tmp_path, compose_cfg):
     """The bounds are guards, not settings: on an ordinary drawing no stage says anything."""
-    from pipeline.runner import run_batch
+    from pipeline.engine.execute.batch import run_batch
 
     img = tmp_path / "vee.png"
     img.write_bytes(synthetic.vee(size=48).png_bytes())

@@ -46,8 +46,8 @@ def _copy_image(work: Path, name: str) -> Path:
 
 
 def _written_after(work: Path, image: Path, t0: float) -> set[str]:
-    from pipeline.inspect import artifacts_of
-    from pipeline.store import ArtifactStore
+    from pipeline.engine.lookup import artifacts_of
+    from pipeline.engine.store import ArtifactStore
 
     rows = artifacts_of(ArtifactStore(str(work / "artifacts")), str(image))
     return {stage for stage, _, m in rows if m.get("written_at", 0) >= t0}

@@ -1,4 +1,4 @@
-"""The compiled kernels shipped with the package (pipeline/kernels.py, stages.portable_cpu_target; issue 14)."""
+"""The compiled kernels shipped with the package (pipeline/engine/kernels/, stages.portable_cpu_target; issue 14)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 import stages
-from pipeline import kernels, warmup
+from pipeline.engine.kernels import shipped as kernels, warmup
 from stages import synthetic
 
 REPO = Path(__file__).resolve().parents[2]
@@ -26,11 +26,11 @@ _CHECK = r"""
 import gc, json, sys
 import stages  # first, as polyvec's commands do: it sets numba's CPU target before numba reads it
 import numpy as np
-from pipeline import kernels
+from pipeline.engine.kernels import shipped as kernels
 for stage in kernels.KERNEL_MODULES:   # as the engine's tasks do
     kernels.load_without_registries(stage)
 from numba.core.dispatcher import Dispatcher
-from pipeline.registry import default_config as cfg
+from pipeline.engine.config import default_config as cfg
 from stages import graph, prep, synthetic
 from stages.config import from_section
 from stages.field import run as field_run
@@ -44,7 +44,7 @@ params = from_section(FlowConfig, cfg("flow"), "flow")
 polyvector_flow(np.asarray(f["c0"]), np.asarray(f["c2"]), [xy], [np.full(len(xy), 3.0)],
                 [np.arange(len(xy), dtype=np.float64)], params)
 import stages.topology.stage as topology
-from pipeline.registry import BY_NAME
+from pipeline.engine.registry import BY_NAME
 # The tee needs no constrained walk; the example drawing does (the topology warm-up uses neither).
 p = prep.run(cfg("prep"), image_bytes=synthetic.example_drawing().png_bytes(), image_name="example.png")
 f = field_run(cfg("field"), prep=p)
@@ -82,13 +82,13 @@ def test_the_shipped_kernels_are_built_from_the_current_sources():
     """Every kernel module's shipped cache was compiled from its source as it is now, by the pinned numba.
 
     numba rejects a cache whose source file changed (any byte of it): after editing one of these
-    modules, run ``python -m pipeline.kernels`` and commit ``pipeline/compiled_kernels``."""
+    modules, run ``python -m pipeline.engine.kernels.build`` and commit ``pipeline/engine/kernels/compiled``."""
     manifest = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
     assert sorted(manifest["modules"]) == MODULES
     for module in MODULES:
         src = kernels.module_file(module)
         assert manifest["modules"][module] == hashlib.sha256(src.read_bytes()).hexdigest(), \
-            f"{module} changed since its kernels were compiled: run python -m pipeline.kernels"
+            f"{module} changed since its kernels were compiled: run python -m pipeline.engine.kernels.build"
         names = manifest["files"][module]
         for tag in manifest["pythons"]:
             assert any(n.endswith(f".{tag}.nbi") for n in names) and any(f".{tag}." in n and n.endswith(".nbc")
@@ -107,7 +107,7 @@ def _load_check(tmp_path: Path, shipped: Path) -> None:
     # A user's shell: no CPU target of numba's set (the pytest process set it; children inherit it).
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba-cache")
-    code = f"from pipeline import kernels; print(kernels.install(list(kernels.KERNEL_MODULES), {str(shipped)!r}))"
+    code = f"from pipeline.engine.kernels import shipped as kernels; print(kernels.install(list(kernels.KERNEL_MODULES), {str(shipped)!r}))"
     copied = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
                             check=True).stdout
     assert sorted(eval(copied)) == MODULES
@@ -132,11 +132,11 @@ def test_the_shipped_kernels_load_without_a_compile(tmp_path):
 
 @pytest.mark.slow
 def test_the_build_command_compiles_every_kernel_the_stages_then_load(tmp_path):
-    """The README's ``python -m pipeline.kernels`` (into another folder, with ``--python``): the warm-ups
+    """The ``python -m pipeline.engine.kernels.build`` of docs/ARCHITECTURE.md (into another folder, with ``--python``): the warm-ups
     compile exactly the kernels the stages load on other drawings, and the same files as the shipped ones."""
     _shipped_fit()
     # --python: another interpreter (here this one again: the same Python's files, built once)
-    subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built"), "--python",
+    subprocess.run([sys.executable, "-m", "pipeline.engine.kernels.build", "--out", str(tmp_path / "built"), "--python",
                     sys.executable], cwd=REPO, check=True, capture_output=True, timeout=600)
     built = json.loads((tmp_path / "built" / kernels.MANIFEST).read_text())
     shipped = json.loads((kernels.SHIPPED / kernels.MANIFEST).read_text())
@@ -148,7 +148,7 @@ def test_the_build_command_compiles_every_kernel_the_stages_then_load(tmp_path):
 
 def test_cache_dir_is_the_folder_numba_caches_in(tmp_path):
     """:func:`kernels.cache_dir` names numba's own folder, with and without ``NUMBA_CACHE_DIR``."""
-    code = ("import json, sys\nfrom pathlib import Path\nfrom pipeline import kernels\n"
+    code = ("import json, sys\nfrom pathlib import Path\nfrom pipeline.engine.kernels import shipped as kernels\n"
             "import stages.graph.trace as t, stages.flow.kernel as k\n"
             "print(json.dumps([[d._cache._cache_path, str(kernels.cache_dir(kernels.module_file(m)))]"
             " for d, m in ((t._trace_all, 'stages.graph.trace'), (k._flow_kernel, 'stages.flow.kernel'))]))")
@@ -263,7 +263,7 @@ def test_the_index_of_a_kernel_an_edit_moved_is_removed_not_taken_for_an_uncompi
     ({"cpu_name": "znver3"}, "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set"),
     ({"cpu_features": None}, "NUMBA_CPU_NAME / NUMBA_CPU_FEATURES are set"),
     ({"platform": "darwin-arm64"}, "the shipped ones are for darwin-arm64, not "),
-    ("source", "stages.flow.kernel changed since they were built (python -m pipeline.kernels)")])
+    ("source", "stages.flow.kernel changed since they were built (python -m pipeline.engine.kernels.build)")])
 def test_install_copies_nothing_built_for_another_machine_or_source(tmp_path, monkeypatch, change, why):
     """And the first run's compile message says why (:func:`kernels.why_compiled`)."""
     manifest = _fake_shipped(tmp_path, monkeypatch, **(change if isinstance(change, dict) else {}))
@@ -340,7 +340,7 @@ def test_another_pythons_cache_in_the_same_folder_is_not_this_ones(tmp_path, mon
 
 def test_the_build_refuses_an_interpreter_without_the_same_numba(tmp_path):
     """``--python`` with a Python that lacks numba: one line, nothing built, the shipped kernels untouched."""
-    proc = subprocess.run([sys.executable, "-m", "pipeline.kernels", "--out", str(tmp_path / "built"), "--python",
+    proc = subprocess.run([sys.executable, "-m", "pipeline.engine.kernels.build", "--out", str(tmp_path / "built"), "--python",
                            sys.executable + "-nonexistent"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "does not run, or has no numba" in proc.stderr
     assert not (tmp_path / "built").exists()
@@ -361,7 +361,7 @@ def ramp(n):
 _TINY_RUN = r"""
 import json, sys
 import stages
-from pipeline import kernels
+from pipeline.engine.kernels import shipped as kernels
 kernels.KERNEL_MODULES["tiny"] = ("tiny_kernels",)
 if sys.argv[1] == "quick":
     kernels.load_without_registries("tiny")

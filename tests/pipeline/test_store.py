@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from pipeline.store import ArtifactStore, artifact_key
+from pipeline.engine.store import ArtifactStore, artifact_key
 from stages.artifact import Artifact, pack_ragged, unpack_ragged
 
 
@@ -67,7 +67,7 @@ def test_killed_writer_leaves_nothing_readable(tmp_path):
     """kill -9 in the middle of a write: the artifact is absent, the next write succeeds."""
     code = textwrap.dedent(f"""
         import os, signal, numpy as np
-        from pipeline.store import ArtifactStore
+        from pipeline.engine.store import ArtifactStore
         from stages.artifact import Artifact
         store = ArtifactStore({str(tmp_path)!r})
         real = ArtifactStore._write_arrays
@@ -116,7 +116,7 @@ def test_per_item_results_round_trip_as_packs(tmp_path, url):
     a result whose bytes are corrupted or torn, or a pack that is not one, reads as missing."""
     import io
 
-    from pipeline.store import encode_pack, read_pack
+    from pipeline.engine.store import encode_pack, read_pack
 
     def decode_pack(raw, wanted):
         return read_pack(io.BytesIO(raw), wanted)
@@ -146,7 +146,7 @@ def test_a_pack_lookup_reads_the_index_and_the_wanted_results_only():
     """Packs pile up (one per λ of a sweep): a lookup must cost what it finds, not every pack's size."""
     import io
 
-    from pipeline.store import encode_pack, read_pack
+    from pipeline.engine.store import encode_pack, read_pack
 
     big = {"curve": np.zeros((5000, 2))}
     raw = encode_pack([("ka", big), ("kb", {"curve": np.ones((3, 2))}), ("kc", big)])
@@ -170,7 +170,7 @@ def test_library_versions_are_looked_up_once_per_process_or_taken_from_the_paren
     process) takes its parent's record instead of asking; a record already made is not replaced."""
     import importlib.metadata as md
 
-    from pipeline import store as store_mod
+    from pipeline.engine import store as store_mod
 
     calls = []
     real = md.version

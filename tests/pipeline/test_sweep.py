@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.registry import BY_NAME
+from pipeline.engine.registry import BY_NAME
 from stages import synthetic
 
 DOWNSTREAM = ("flow", "select", "export")

@@ -1,4 +1,4 @@
-"""The background kernel warm-up of a first in-process run (pipeline/warmup.py, issue 14)."""
+"""The background kernel warm-up of a first in-process run (pipeline/engine/kernels/warmup.py, issue 14)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pipeline import warmup
-from pipeline.runner import run_batch
+from pipeline.engine.kernels import warmup
+from pipeline.engine.execute.batch import run_batch
 from stages import synthetic
 
 REPO = Path(__file__).resolve().parents[2]
@@ -59,7 +59,7 @@ def test_kernels_compile_without_colouring_numbas_rejected_overload_messages():
     """numba formats a message for each overload it rejects while typing; colouring them (colorama)
     cost ~8 % of a first run's compiles. A process that runs stages or warm-ups must have it off, also
     when the user's environment has none of numba's variables."""
-    code = ("import pipeline.warmup, stages.graph.trace, stages.flow.kernel\n"
+    code = ("import pipeline.engine.kernels.warmup, stages.graph.trace, stages.flow.kernel\n"
             "from numba.core import errors\n"
             "print(type(errors.termcolor()).__name__)")
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_DISABLE")}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.cli import REPO_CONF
+from pipeline.engine.config import CONF_DIR as REPO_CONF
 from stages.config import from_section
 from stages.evaluate.curve_topology import TopologyParams, benchmark_gap_statistics, compare_topology, curve_topology
 from stages.evaluate.matching import match_one_to_one, prf1

@@ -1,6 +1,6 @@
 """The ``train`` config group (``conf/train/default.yaml``) as dataclasses, one field per key.
 
-:class:`TrainConfig` is registered as a Hydra structured config (:mod:`pipeline.schema`), and
+:class:`TrainConfig` is registered as a Hydra structured config (:mod:`pipeline.engine.config`), and
 ``python -m pipeline.train --plain`` checks its YAML with :func:`stages.config.from_section`, so the
 YAML and these classes cannot disagree. The training code reads the plain dict; the sections with a
 class of their own (``network``, ``generator``, ``labels``) are built with ``from_section`` where used.

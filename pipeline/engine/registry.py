@@ -15,19 +15,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 from types import ModuleType
-
-#: The Hydra config folder: one group per stage (``conf/<stage>/default.yaml``) and the apps.
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-
-
-def default_config(group: str) -> dict:
-    """A config group's defaults, ``conf/<group>/default.yaml``, as a plain dict (empty without one)."""
-    import yaml
-
-    path = CONF_DIR / group / "default.yaml"
-    return (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
 
 
 @dataclass(frozen=True)
@@ -130,7 +118,7 @@ def ancestors(name: str) -> set[str]:
 def height(name: str) -> int:
     """Stages on the longest path from ``name`` to the end of the DAG, ``name`` included (export: 1).
 
-    The engine runs the stages with the most work still behind them first (:func:`pipeline.runner.priority`).
+    The engine runs the stages with the most work still behind them first (:func:`pipeline.engine.execute.dask_cluster.priority`).
     """
     below = [s.name for s in STAGES if name in s.inputs]
     return 1 + max((height(b) for b in below), default=0)

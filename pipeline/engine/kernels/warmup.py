@@ -2,10 +2,10 @@
 
 The graph, topology and flow stages run numba kernels that are compiled on first use and cached on
 disk (``@njit(cache=True)``): about 11 s, 1 s and 10 s of a first image, one after the other, while
-the other core idles, where the package's compiled kernels (:mod:`pipeline.kernels`) do not fit the
+the other core idles, where the package's compiled kernels (:mod:`pipeline.engine.kernels.shipped`) do not fit the
 machine. When a single-process run (``runtime.cluster`` sync or auto
 with one image) is about to compute those stages and their kernels have no cache yet, :func:`start`
-launches two background processes (``python -m pipeline.warmup STAGE ...``: the graph's; topology's
+launches two background processes (``python -m pipeline.engine.kernels.warmup STAGE ...``: the graph's; topology's
 then the flow's) that compile the kernels by running the stages' code on tiny inputs, while the main
 process works on prep, keypoints and the field. Before the engine computes one of these stages it
 waits for that stage's warm-up (:func:`wait`), so
@@ -24,8 +24,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pipeline import kernels
-from pipeline.registry import default_config
+from pipeline.engine.config import default_config
+from pipeline.engine.kernels import shipped
 
 #: Stages whose kernels a background process compiles.
 WARMED = ("graph", "topology", "flow")
@@ -36,13 +36,13 @@ PROCESSES = (("graph",), ("topology", "flow"))
 #: Longest wait for a warm-up before the stage compiles on its own (s).
 WAIT_LIMIT_S = 180.0
 
-_ROOT = Path(__file__).resolve().parents[1]
+_ROOT = Path(__file__).resolve().parents[3]
 _RUNNING: dict[str, subprocess.Popen] = {}
 
 
 def uncompiled(stages: list[str]) -> list[str]:
-    """The stages of ``stages`` with numba kernels that have no on-disk cache yet (:func:`pipeline.kernels.is_cached`)."""
-    return [s for s in stages if kernels.uncached_modules([s])]
+    """The stages of ``stages`` with numba kernels that have no on-disk cache yet (:func:`pipeline.engine.kernels.shipped.is_cached`)."""
+    return [s for s in stages if shipped.uncached_modules([s])]
 
 
 def start(stages: list[str]) -> list[str]:
@@ -61,7 +61,7 @@ def start(stages: list[str]) -> list[str]:
             continue
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                    NUMBA_NUM_THREADS="1")
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.warmup", *todo], cwd=str(_ROOT),
+        proc = subprocess.Popen([sys.executable, "-m", "pipeline.engine.kernels.warmup", *todo], cwd=str(_ROOT),
                                 env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, start_new_session=True)
         for stage in todo:
@@ -131,7 +131,7 @@ def warm(stage: str) -> None:
                 np.array([0, 2, 3, 4, 6], i64), np.ones(6, bool), 0, 3, np.array([0, 1, 0], i64),
                 np.array([True, False, False]), np.array([False, False, True]), 1)
     else:
-        raise SystemExit(f"pipeline.warmup: no warm-up for stage {stage!r} (known: {', '.join(WARMED)})")
+        raise SystemExit(f"pipeline.engine.kernels.warmup: no warm-up for stage {stage!r} (known: {', '.join(WARMED)})")
 
 
 if __name__ == "__main__":

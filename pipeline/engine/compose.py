@@ -25,7 +25,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from pipeline.registry import CONF_DIR
+from pipeline.engine.config import CONF_DIR
 
 #: Cached configs kept; the oldest are removed beyond it (every distinct command line is one file of
 #: about 20 kB).

@@ -8,7 +8,7 @@ the group, so composing the YAML onto it checks every key and type: an unknown k
 override) or a value of the wrong type is an error at start-up, and a key the file lacks is reported
 by :func:`validate`.
 
-Every start-up imports this module (``conf/__init__.py``, the runner's :func:`validate`), so what it
+Every start-up imports this module (``conf/__init__.py``, the batch's :func:`validate`), so what it
 imports stays light, Hydra only in :func:`register`: a stage's package holds its dataclasses, not its
 code (:mod:`stages.lazy`), and the training's and the bench's dataclasses are in light modules too
 (:mod:`stages.keypoints.training.config`, :mod:`stages.evaluate`); ``tests/pipeline/test_cli.py``
@@ -17,11 +17,13 @@ checks that a cached run imports no numba, scipy or torch, nor Hydra where its c
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from pipeline.bench import BenchConfig
-from pipeline.runner import RuntimeConfig, stage_config
 from stages.config import from_section
+from stages.errors import InputError
+from stages.evaluate import BenchConfig
 from stages.export import ExportConfig
 from stages.extension import ExtensionConfig
 from stages.field import FieldConfig
@@ -34,6 +36,31 @@ from stages.prep import PrepConfig
 from stages.select import SelectConfig
 from stages.topology import TopologyConfig
 
+#: The Hydra config folder: one group per stage (``conf/<stage>/default.yaml``) and the apps.
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+@dataclass
+class RuntimeConfig:
+    """The ``runtime`` config group (``conf/runtime/local.yaml``), one field per key: where tasks run."""
+
+    cluster: str
+    workers: int
+    memory_limit: Any
+    scheduler_address: str | None
+    connect_timeout_s: float
+    until: str | None
+    progress: bool
+    pages: bool
+    debug: bool
+    keypoints_process: bool
+    shipped_kernels: bool
+
+    def __post_init__(self) -> None:
+        if self.cluster not in ("auto", "local", "sync"):
+            raise InputError(f"runtime.cluster must be auto, local or sync, not {self.cluster!r}")
+
+
 #: config group → the dataclass that mirrors it
 SCHEMAS: dict[str, type] = {
     "prep": PrepConfig, "keypoints": KeypointsConfig, "keypoint_edits": KeypointEditsConfig,
@@ -41,6 +68,26 @@ SCHEMAS: dict[str, type] = {
     "select": SelectConfig, "export": ExportConfig, "runtime": RuntimeConfig, "bench": BenchConfig,
     "train": TrainConfig,
 }
+
+
+def default_config(group: str) -> dict:
+    """A config group's defaults, ``conf/<group>/default.yaml``, as a plain dict (empty without one)."""
+    import yaml
+
+    path = CONF_DIR / group / "default.yaml"
+    return (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
+
+
+def stage_config(cfg: Any, stage: str) -> dict:
+    """The plain-dict config section of a stage (empty when the group has no file)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    section = cfg.get(stage) if hasattr(cfg, "get") else None
+    if section is None:
+        return {}
+    if isinstance(section, DictConfig):
+        return OmegaConf.to_container(section, resolve=True)
+    return dict(section)
 
 
 def register() -> None:

@@ -7,7 +7,7 @@ Layout under the store root::
     <stage>/<key[:2]>/<key>/manifest.json   stage, version, config, inputs, timings, library versions
     .items/<stage>/<image key>/<uuid>.pack  per-item results of a per-item stage (the flow's paths),
                                             one pack per computation, reused across artifacts
-                                            (:mod:`pipeline.runner`)
+                                            (:mod:`pipeline.engine.execute.node`)
     .tmp/<uuid>/                            artifacts being written
 
 An artifact is written completely into ``.tmp/<uuid>`` and then renamed into place. A rename of a

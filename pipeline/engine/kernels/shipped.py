@@ -2,18 +2,18 @@
 
 The field, graph, topology and flow stages run numba kernels (``@njit(cache=True)``) that numba compiles
 on first use and caches on disk: about 40 CPU seconds of a fresh install's first drawing. The package
-ships them compiled, as numba's own cache files, in ``pipeline/compiled_kernels/`` (one folder per
-kernel module and a ``manifest.json``), built by ``python -m pipeline.kernels`` for the CPU level of
+ships them compiled, as numba's own cache files, in ``pipeline/engine/kernels/compiled/`` (one folder per
+kernel module and a ``manifest.json``), built by ``python -m pipeline.engine.kernels.build`` for the CPU level of
 :func:`stages.portable_cpu_target` (x86-64-v3). Before a run computes a stage whose kernels have no
 cache yet, :func:`install` copies that stage's shipped files into the folder where numba looks for them
 (:func:`cache_dir`), when they fit: built from this very source file (sha256), by this numba and
 Python, for the CPU target and platform this process compiles for (on a cluster joined by
 ``runtime.scheduler_address``, each worker copies them into its own machine's cache before its first
 task). numba then loads them, and checks the same things again itself. Otherwise nothing is copied and the kernels compile as before
-(:mod:`pipeline.warmup`). ``runtime.shipped_kernels=false`` turns the copy off. A task loads its
+(:mod:`pipeline.engine.kernels.warmup`). ``runtime.shipped_kernels=false`` turns the copy off. A task loads its
 stage's cached kernels without numba's registries (:func:`load_without_registries`).
 
-A developer who changes a kernel module runs ``python -m pipeline.kernels`` again (a test says when).
+A developer who changes a kernel module runs ``python -m pipeline.engine.kernels.build`` again (a test says when).
 """
 
 from __future__ import annotations
@@ -25,9 +25,7 @@ import json
 import os
 import pickletools
 import shutil
-import subprocess
 import sys
-import tempfile
 from importlib.util import find_spec
 from pathlib import Path
 
@@ -37,7 +35,7 @@ import stages  # noqa: F401  (sets numba's CPU target, stages.portable_cpu_targe
 KERNEL_MODULES = {"field": ("stages.field.kernel",), "graph": ("stages.graph.trace", "stages.graph.cross_section"),
                   "topology": ("stages.topology.constrained_path",), "flow": ("stages.flow.kernel",)}
 #: Where the compiled kernels are shipped: ``<module>/<numba's cache files>`` and the manifest.
-SHIPPED = Path(__file__).resolve().with_name("compiled_kernels")
+SHIPPED = Path(__file__).resolve().with_name("compiled")
 #: The manifest's name in such a folder.
 MANIFEST = "manifest.json"
 
@@ -271,7 +269,7 @@ def misfit(manifest: dict | None) -> str:
 def stale(manifest: dict, module: str) -> str:
     """``""`` when the shipped kernels of ``module`` were built from its source as it is (sha256), else why not."""
     if manifest["modules"].get(module) != _sha256(module_file(module)):
-        return f"{module} changed since they were built (python -m pipeline.kernels)"
+        return f"{module} changed since they were built (python -m pipeline.engine.kernels.build)"
     return ""
 
 
@@ -333,76 +331,3 @@ def install(stages: list[str], shipped: Path | None = None) -> list[str]:
             continue
         copied.append(module)
     return copied
-
-
-def _interpreter_tag(python: str) -> str:
-    """The Python tag of the interpreter ``python``; it must have the numba that built the other kernels."""
-    code = "import sys, importlib.metadata as m; print(f'py{sys.version_info[0]}{sys.version_info[1]}', m.version('numba'))"
-    try:
-        tag, numba = subprocess.run([python, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    except (OSError, subprocess.CalledProcessError, ValueError):
-        raise SystemExit(f"python -m pipeline.kernels: {python} does not run, or has no numba") from None
-    if numba != target()["numba"]:
-        raise SystemExit(f"python -m pipeline.kernels: {python} has numba {numba}, not {target()['numba']}")
-    return tag
-
-
-def build(out: Path = SHIPPED, pythons: tuple[str, ...] = ()) -> None:
-    """Compile every kernel module for the portable CPU target and write its cache files and manifest to ``out``.
-
-    The kernels are compiled by the stages' warm-ups (:func:`pipeline.warmup.warm`: the stages' own code
-    on the bundled example), in :data:`pipeline.warmup.PROCESSES`' two processes at once, into an empty
-    ``NUMBA_CACHE_DIR``; ``out`` is replaced by the files that holds.
-
-    Parameters
-    ----------
-    out : Path
-        The folder to write (:data:`SHIPPED` by default).
-    pythons : tuple of str
-        Other Python interpreters to compile for as well (their cache files are named by their version);
-        each needs the same numba and the stages' dependencies, and runs this source tree.
-    """
-    from pipeline.warmup import PROCESSES
-
-    if not stages.portable_cpu_target():
-        raise SystemExit(f"python -m pipeline.kernels: this machine does not compile for {stages.PORTABLE_CPU} "
-                         "(an x86-64 Linux CPU with that level, no NUMBA_CPU_NAME of its own): nothing built")
-    out = Path(out)
-    interpreters = {python_tag(): sys.executable} | {_interpreter_tag(p): p for p in pythons}
-    root = str(Path(__file__).resolve().parents[1])
-    with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, NUMBA_CACHE_DIR=tmp, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1",
-                   PYTHONPATH=os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH")))))
-        for python in interpreters.values():
-            procs = [subprocess.Popen([python, "-m", "pipeline.warmup", *group], env=env, cwd=root)
-                     for group in PROCESSES]
-            if any(proc.wait() for proc in procs):
-                raise SystemExit(f"python -m pipeline.kernels: a warm-up by {python} failed (above): nothing built")
-        files, sums = {}, {}
-        shutil.rmtree(out, ignore_errors=True)
-        for module in sorted(m for ms in KERNEL_MODULES.values() for m in ms):
-            src = module_file(module)
-            found = sorted(p for p in cache_dir(src, env).glob(f"{src.stem}.*") if p.suffix in (".nbi", ".nbc"))
-            for tag in interpreters:
-                if not any(p.suffix == ".nbi" and f".{tag}." in p.name for p in found):
-                    raise SystemExit(f"python -m pipeline.kernels: the warm-ups compiled nothing of {module} ({tag})")
-            (out / module).mkdir(parents=True)
-            for p in found:
-                shutil.copyfile(p, out / module / p.name)
-            files[module], sums[module] = [p.name for p in found], _sha256(src)
-    manifest = {"target": target(), "pythons": sorted(interpreters), "modules": sums, "files": files}
-    (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
-    size = sum(p.stat().st_size for p in out.rglob("*"))
-    print(f"pipeline.kernels: {sum(map(len, files.values()))} files of {len(files)} modules for "
-          f"{', '.join(sorted(interpreters))}, {size / 1e6:.1f} MB, in {out}")
-
-
-if __name__ == "__main__":
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m pipeline.kernels", description=build.__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=SHIPPED, help=f"where to write them (default {SHIPPED})")
-    parser.add_argument("--python", action="append", default=[], metavar="PYTHON",
-                        help="another Python interpreter to compile for (repeatable), with the same numba")
-    args = parser.parse_args()
-    build(args.out, tuple(args.python))
