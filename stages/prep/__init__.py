@@ -1,8 +1,11 @@
 """Stage ``prep``: decode the drawing, grey it, normalise its contrast and find the narrow band.
 
-``STAGE_VERSION`` and the config dataclasses. Its code, and the docstring that describes it and its
-choices, are in :mod:`stages.prep.stage`; ``run`` and its other public names load from there when
-first used (:mod:`stages.lazy`).
+``STAGE_VERSION`` and the config dataclasses. Its code is in :mod:`stages.prep.stage` (``run``: the
+order of the steps, and the docstring that describes it) and one module per step (``decode``,
+``sheet``, ``sheet_flatten``, ``invert``, ``lighting``, ``crop``, ``specks``, ``layout``, ``contrast``,
+``band``, ``width``, ``supersampling``, ``downsampling``; shared helpers in ``pixels``), whose
+docstrings say what each step does and its choices; ``run`` and the other public names load from there
+when first used (:mod:`stages.lazy`).
 """
 
 from __future__ import annotations
@@ -223,7 +226,12 @@ def source_size(data: dict, internal_shape: tuple[int, int]) -> tuple[int, int]:
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
-    "stages.prep.stage": ("run", "decode_image", "flatten_lighting", "normalise_contrast", "paper_statistics", "narrow_band",
-                          "stroke_width", "soft_edges", "supersample_factor", "supersample",
-                          "downsample_factor", "downsample"),
+    "stages.prep.stage": ("run",),
+    "stages.prep.decode": ("decode_image",),
+    "stages.prep.lighting": ("flatten_lighting",),
+    "stages.prep.contrast": ("normalise_contrast",),
+    "stages.prep.band": ("paper_statistics", "narrow_band"),
+    "stages.prep.width": ("stroke_width", "soft_edges"),
+    "stages.prep.supersampling": ("supersample_factor", "supersample"),
+    "stages.prep.downsampling": ("downsample_factor", "downsample"),
 })

@@ -10,7 +10,7 @@ import yaml
 from PIL import Image, ImageDraw
 from scipy import ndimage
 
-from pipeline.cli import REPO_CONF
+from pipeline.engine.config import CONF_DIR as REPO_CONF
 from stages import prep, synthetic
 from stages.errors import InputError
 
@@ -761,15 +761,15 @@ def test_a_sheet_photographed_at_an_angle_is_flattened_to_its_proportions(angle,
 
 
 def test_the_proportions_of_a_sheet_from_its_corners_in_a_photograph():
-    """``_sheet_aspect`` on exact corners (the camera of ``photos.photographed``): a 600×800 sheet
+    """``sheet_aspect`` on exact corners (the camera of ``photos.photographed``): a 600×800 sheet
     turned and leaned by various angles comes back at 0.75 to 0.2 %; seen head-on, turned, too."""
     from photos import sheet_to_photo
-    from stages.prep.stage import _sheet_aspect
+    from stages.prep.sheet_flatten import sheet_aspect
 
     for angle, tilt in ((0, 0.001), (12, 0.001), (10, 30), (-25, 40), (30, -20), (5, 15)):
         hom = sheet_to_photo((600, 800), angle, tilt, (520, 640), (1000, 1300))
         corners = np.c_[[-0.5, 599.5, 599.5, -0.5], [-0.5, -0.5, 799.5, 799.5], np.ones(4)] @ hom.T
-        aspect = _sheet_aspect(corners[:, :2] / corners[:, 2:], (1300, 1000))
+        aspect = sheet_aspect(corners[:, :2] / corners[:, 2:], (1300, 1000))
         assert abs(aspect - 0.75) < 0.0015, (angle, tilt, aspect)
 
 
