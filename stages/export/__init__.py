@@ -111,5 +111,7 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
     "stages.export.corners": ("join_at_corners", "join_linked"),
     "stages.export.gaps": ("close_gaps",),
-    "stages.export.joins": ("attach_spurs", "collapse_short_links", "extend_overshoots", "join_continuations"),
+    "stages.export.joins": ("collapse_short_links", "join_continuations"),
+    "stages.export.spurs": ("attach_spurs",),
+    "stages.export.overshoots": ("extend_overshoots",),
 })

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.export.joins import mean_width
+from stages.export.curve_ends import mean_width
 
 CORNER = 5
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from stages.export.corners import join_linked
 from stages.export.end_index import _PointGrid, _within
-from stages.export.joins import end_direction
+from stages.export.curve_ends import end_direction
 from stages.geometry import arc_length
 
 #: An end is free when no other curve (nor its own other end) comes within max(FREE_PX, width) of

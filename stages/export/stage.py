@@ -83,7 +83,9 @@ from stages.export import ExportConfig
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
 from stages.export.gaps import close_gaps
-from stages.export.joins import attach_spurs, collapse_short_links, extend_overshoots, join_continuations
+from stages.export.joins import collapse_short_links, join_continuations
+from stages.export.overshoots import extend_overshoots
+from stages.export.spurs import attach_spurs
 from stages.geometry import polyline_length
 from stages.prep import internal_is_source, internal_scale, to_source
 

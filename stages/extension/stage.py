@@ -27,7 +27,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.extension import ExtensionConfig
-from stages.field.stage import _as_real, _conjugate_gradient, _region_index, _smart_laplacian
+from stages.field.solver import _as_real, _conjugate_gradient, _region_index, _smart_laplacian
 
 
 def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,

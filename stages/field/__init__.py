@@ -37,7 +37,8 @@ class FieldConfig:
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
-    "stages.field.stage": ("run", "compute_field", "image_tangents", "coherence_weights", "smart_weights",
-                           "polyvector_roots", "root_matching", "singular_cells", "singular_pixels"),
+    "stages.field.stage": ("run", "compute_field"),
+    "stages.field.data_terms": ("image_tangents", "coherence_weights", "smart_weights"),
+    "stages.field.roots": ("polyvector_roots", "root_matching", "singular_cells", "singular_pixels"),
     "stages.field.field_picture": ("render_field",),
 })

@@ -40,7 +40,7 @@ class TraceConfig:
 
 @dataclass
 class SectionConfig:
-    """``graph.sections``: cross-sections (see :func:`stages.graph.cross_section.build_cross_sections`)."""
+    """``graph.sections``: cross-sections (see :func:`stages.graph.raw_graph.build_cross_sections`)."""
 
     station_spacing: float
     cover_factor: float

@@ -6,9 +6,9 @@ b19-frame-field-and-graph.md §A.2–A.3, authors-implementation.md §4):
 1. :mod:`~stages.graph.trace` — streamlines of the PolyVector field from every band pixel, both ways
    (step 0.1 px, best-aligned root continuation, stop on leaving the band, singular pixels, merging,
    length cap).
-2. :mod:`~stages.graph.cross_section` — vertices = cross-sections of the streamlines of one root
-   family (gaps ≤ ``max_gap``): centre, width, root, member streamlines; edges join vertices
-   consecutive along a streamline.
+2. :mod:`~stages.graph.cross_section` (its kernels) and :mod:`~stages.graph.raw_graph` — vertices =
+   cross-sections of the streamlines of one root family (gaps ≤ ``max_gap``): centre, width, root,
+   member streamlines; edges join vertices consecutive along a streamline.
 3. :mod:`~stages.graph.cleanup` — merge near-duplicate vertices, trim dangling branches into
    singularities, drop insignificant components, contract thickness loops (≤ 4 enclosed background
    pixels; real holes stay), prune spurs inside the stroke and hooked tips, join dangling ends across
@@ -58,7 +58,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.graph import GraphConfig, cleanup, ends
-from stages.graph.cross_section import RawGraph, build_cross_sections, streamline_edges
+from stages.graph.raw_graph import RawGraph, build_cross_sections, streamline_edges
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
 
@@ -87,7 +87,7 @@ def edge_streamlines(known: np.ndarray, curve: np.ndarray, edges: np.ndarray) ->
     ----------
     known : numpy.ndarray
         int (K, 2) unique edges ``a < b`` in ascending (a, b) order, as
-        :func:`~stages.graph.cross_section.streamline_edges` gives them.
+        :func:`~stages.graph.raw_graph.streamline_edges` gives them.
     curve : numpy.ndarray
         int (K,) the streamline of each known edge.
     edges : numpy.ndarray

@@ -493,6 +493,8 @@ def test_joining_is_near_linear_in_the_number_of_curves(monkeypatch):
 
 
 def _count_lengths(monkeypatch) -> dict:
+    from stages.export import curve_ends, overshoots, spurs
+
     calls = {"n": 0}
     length = joins.polyline_length
 
@@ -500,7 +502,8 @@ def _count_lengths(monkeypatch) -> dict:
         calls["n"] += 1
         return length(points)
 
-    monkeypatch.setattr(joins, "polyline_length", counting)
+    for module in (joins, curve_ends, spurs, overshoots):   # the clean-ups' modules, joins.py and those split from it
+        monkeypatch.setattr(module, "polyline_length", counting)
     return calls
 
 

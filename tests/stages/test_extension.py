@@ -54,7 +54,7 @@ def test_the_ring_is_the_smart_weighted_harmonic_extension_of_the_band():
     band held: the same solve as a direct sparse factorisation."""
     from scipy.sparse.linalg import spsolve
 
-    from stages.field.stage import _region_index, _smart_laplacian
+    from stages.field.solver import _region_index, _smart_laplacian
 
     d = synthetic.vee(size=48, width=3)
     ins = _inputs(d.grey)

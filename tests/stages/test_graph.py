@@ -457,7 +457,7 @@ def test_scanned_drawing_crop_graph_is_centred_on_the_strokes():
 def test_streamline_edges_equal_the_three_key_lexsort():
     """Edges of consecutive crossings, unique, each with its lowest streamline: the one-key stable sort
     gives what sorting by (i, j, streamline) gives, on crossings in any order and with duplicates."""
-    from stages.graph.cross_section import member_order, streamline_edges
+    from stages.graph.raw_graph import member_order, streamline_edges
     rng = np.random.default_rng(7)
     n = 5000
     mv, mc = rng.integers(0, 300, n), rng.integers(0, 80, n)

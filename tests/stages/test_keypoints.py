@@ -661,7 +661,7 @@ def test_distilled_class_branch_keeps_detection_and_learns_the_teachers_maps(tmp
     around its detections; the trunk and H1 are the teacher's, and the student's loss falls."""
     from pipeline.train import compose_plain
     from stages.keypoints.training import train_class_branch
-    from stages.keypoints.training.loop import distill_patches
+    from stages.keypoints.training.class_branch import distill_patches
 
     teacher_path = _tiny_detector(tmp_path, 3, ["train.network.class_width=6", "train.network.class_dilations=[1,2]"])
     cfg = compose_plain(CONF, _TINY + [

@@ -40,7 +40,10 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.keypoints.training.data": ("category_split", "draw_vector", "prepare_sample", "render_vector",
                                        "stroke_count_cdf", "validation_set", "vector_pool", "vector_samples",
                                        "vector_split"),
-    "stages.keypoints.training.loop": ("evaluate", "export_weights", "train", "train_class_branch"),
+    "stages.keypoints.training.loop": ("train",),
+    "stages.keypoints.training.validation": ("evaluate",),
+    "stages.keypoints.training.checkpoints": ("export_weights",),
+    "stages.keypoints.training.class_branch": ("train_class_branch",),
     "stages.keypoints.training.type_classifier": ("fit_type_classifier", "train_type_classifier",
                                                   "type_classifier_data"),
 })

@@ -16,7 +16,8 @@ from stages.config import from_section
 from stages.keypoints.training.data import _vector_files, vector_samples, vector_split
 from stages.keypoints.training.generator import GeneratorConfig, generate
 from stages.keypoints.training.labels import LabelRules
-from stages.keypoints.training.loop import _class_weights, say_weights
+from stages.keypoints.training.checkpoints import say_weights
+from stages.keypoints.training.class_branch import _class_weights
 
 # ------------------------------------------------------------------------------------------------
 # Keypoint typing by local valence (stages/keypoints/valence.py)

@@ -1,0 +1,202 @@
+"""The field's linear system and its solve: sparse operators, assembly and conjugate gradients (step 3).
+
+The energy of :mod:`stages.field.stage` (see its docstring) leads to normal equations over
+``X = [c0; c2]`` of the band pixels: the finite differences restricted to the band
+(:func:`_difference_operator`) and the smart-weighted Laplacian ``L = Σ Dᵀ diag(s) D``
+(:func:`_smart_laplacian`), the system split into a real part and a diagonal coupling
+(:func:`_assemble`) and applied to four real columns without forming the complex matrix
+(:func:`_field_operator`), solved by a hand-written Jacobi-preconditioned CG
+(:func:`_conjugate_gradient`, which says why not scipy's).  The extension stage solves its own
+system with the same pieces; the field stage (:func:`stages.field.stage.compute_field`) runs the
+singularity loop around them.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from stages.field.data_terms import smart_weights
+
+if TYPE_CHECKING:
+    from stages.field import FieldConfig
+
+
+# ---------------------------------------------------------------------------------------------
+# Sparse operators
+# ---------------------------------------------------------------------------------------------
+
+def _difference_operator(region: np.ndarray, index: np.ndarray, axis: int) -> sp.csr_matrix:
+    """The reference's finite difference along ``axis`` restricted to ``region``.
+
+    Central ±½ to both neighbours when both are in the region (the centre is not used), one-sided
+    ±1 when only one is, an empty row when neither is.  Rows and columns follow ``index``.
+    """
+    n = int(region.sum())
+    pad = np.pad(region, 1, constant_values=False)
+    ipad = np.pad(index, 1, constant_values=-1)
+    if axis == 1:
+        prev_in, next_in = pad[1:-1, :-2], pad[1:-1, 2:]
+        prev_ix, next_ix = ipad[1:-1, :-2], ipad[1:-1, 2:]
+    else:
+        prev_in, next_in = pad[:-2, 1:-1], pad[2:, 1:-1]
+        prev_ix, next_ix = ipad[:-2, 1:-1], ipad[2:, 1:-1]
+    r = region
+    me = index[r]
+    pi_, ni_ = prev_in[r], next_in[r]
+    pix, nix = prev_ix[r], next_ix[r]
+    both = pi_ & ni_
+    only_next = ni_ & ~pi_
+    only_prev = pi_ & ~ni_
+    rows = np.concatenate([me[both], me[both], me[only_next], me[only_next], me[only_prev], me[only_prev]])
+    cols = np.concatenate([nix[both], pix[both], nix[only_next], me[only_next], me[only_prev], pix[only_prev]])
+    nb, nn, npv = both.sum(), only_next.sum(), only_prev.sum()
+    vals = np.concatenate([np.full(nb, 0.5), np.full(nb, -0.5), np.ones(nn), -np.ones(nn),
+                           np.ones(npv), -np.ones(npv)])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD)."""
+    sd = sp.diags(s[region])
+    lap = None
+    for axis in (0, 1):
+        d = _difference_operator(region, index, axis)
+        term = (d.T @ sd @ d)
+        lap = term if lap is None else lap + term
+    return lap.tocsr()
+
+
+def _region_index(region: np.ndarray) -> np.ndarray:
+    index = np.full(region.shape, -1, dtype=np.int64)
+    index[region] = np.arange(int(region.sum()))
+    return index
+
+
+def _rdot(a: np.ndarray, b: np.ndarray) -> float:
+    """``Σ a·b`` of real arrays of any shape without BLAS (see :func:`_conjugate_gradient`)."""
+    return float(np.einsum("i,i->", a.reshape(-1), b.reshape(-1)))
+
+
+def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray | None, rtol: float,
+                        maxiter: int, compiled: bool = False) -> tuple[np.ndarray, int, bool]:
+    """Jacobi-preconditioned conjugate gradients for a Hermitian PSD system in real form.
+
+    The complex unknowns travel as real (n, m) arrays (``Re``/``Im`` columns): ``apply(X)`` is the
+    operator, ``diag`` its real diagonal, shared by the m columns.  Hand-written rather than
+    ``scipy.sparse.linalg.cg``: scipy's complex inner products call BLAS (``zdotc``), which
+    multi-threads even 40k-vectors; on a busy 2-core machine that made the solve 5–20× slower
+    (elephant: 17.7 s vs 3.5 s wall).  Here the inner products are numpy loops (:func:`_rdot`), and
+    only the sparse product does real work.  ``compiled``: the updates of ``x, r, z`` and ``p`` run as
+    two numba loops (:mod:`stages.field.kernel`) instead of six numpy passes, with the same result to
+    the last bit; the field's solve uses them, the extension's (in the keypoints process, which loads
+    no numba) does not.  Stops when ``‖b − A x‖ ≤ rtol · ‖b‖``.  Zero diagonal entries (rows without
+    any term) get a preconditioner of 1; their unknowns keep the start value.
+
+    Returns
+    -------
+    x, iterations, converged
+    """
+    inv = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0)
+    x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=b.dtype, copy=True)
+    bnorm = np.sqrt(_rdot(b, b))
+    if bnorm == 0.0:
+        return np.zeros_like(b), 0, True
+    r = b - apply(x) if x0 is not None else b.copy()
+    z = inv[:, None] * r
+    p = z.copy()
+    rz = _rdot(r, z)
+    stop = rtol * bnorm
+    if compiled:
+        from stages.field.kernel import next_direction, step_solution
+    else:
+        tmp = np.empty_like(b)
+
+        def step_solution(x, r, z, p, ap, inv, step):
+            x += np.multiply(p, step, out=tmp)
+            r -= np.multiply(ap, step, out=tmp)
+            np.multiply(inv[:, None], r, out=z)
+
+        def next_direction(p, z, beta):
+            p *= beta
+            p += z
+    for k in range(maxiter):
+        if np.sqrt(_rdot(r, r)) <= stop:
+            return x, k, True
+        ap = apply(p)
+        step = rz / _rdot(p, ap)
+        step_solution(x, r, z, p, ap, inv, step)
+        rz_new = _rdot(r, z)
+        next_direction(p, z, rz_new / rz)
+        rz = rz_new
+    return x, maxiter, bool(np.sqrt(_rdot(r, r)) <= stop)
+
+# ---------------------------------------------------------------------------------------------
+# The system
+# ---------------------------------------------------------------------------------------------
+
+def _assemble(mask, index, tau_b, w_full, cfg: FieldConfig):
+    """The system over ``X = [c0; c2]`` of the band pixels, split into its real and coupling parts.
+
+    The Hermitian matrix is ``[[K, diag(o)], [diag(conj o), K]]`` with the *real* ``K = diag(w + α m)
+    + β L`` shared by both coefficients and the diagonal coupling ``o = (w − α m) τ²``.  It is never
+    formed: :func:`_field_operator` applies ``K`` to the four real columns ``Re/Im c0, Re/Im c2`` in
+    one sparse product (a third of the memory traffic of the complex ``2n × 2n`` matrix).
+
+    Returns
+    -------
+    k : scipy.sparse.csr_matrix
+        real (n, n).
+    off : numpy.ndarray
+        complex (n,), the coupling ``o``.
+    rhs : numpy.ndarray
+        float (n, 4), the right-hand side as ``Re/Im`` of ``[-(w + α m) τ⁴, -(w − α m) τ²]``.
+    """
+    w_b = w_full[mask]
+    m = (np.abs(tau_b) > 0).astype(np.float64)  # the orthogonal term applies where τ ≠ 0
+    t2 = tau_b ** 2
+    t4 = t2 ** 2
+    lap = _smart_laplacian(mask, index, smart_weights(w_full))
+    plus = w_b + cfg.alpha * m
+    minus = w_b - cfg.alpha * m
+    k = (sp.diags(plus) + cfg.beta * lap).tocsr()
+    rhs = np.stack([-plus * t4, -minus * t2], axis=1).astype(np.complex128)
+    return k, (minus * t2).astype(np.complex128), _as_real(rhs)
+
+
+def _as_real(x: np.ndarray) -> np.ndarray:
+    """complex (n, 2) → float (n, 4) columns ``Re c0, Im c0, Re c2, Im c2`` (a copy, C order)."""
+    return np.ascontiguousarray(x).view(np.float64).copy()
+
+
+def _field_operator(k: sp.csr_matrix, off: np.ndarray, compiled: bool = False):
+    """``X ↦ A X`` for the four real columns of ``[c0, c2]`` (see :func:`_assemble`).
+
+    ``compiled``: the sparse product by a numba loop (:func:`stages.field.kernel.sparse_product`,
+    the same result to the last bit, without scipy's dispatch) and the coupling's complex products
+    (numpy's, as below) into buffers that each call overwrites (the CG reads a product before it
+    asks for the next).
+    """
+    if compiled:
+        from stages.field.kernel import sparse_product
+
+        off_conj = off.conj()
+        y, product = np.empty((k.shape[0], 4)), np.empty(k.shape[0], np.complex128)
+
+        def apply_compiled(x: np.ndarray) -> np.ndarray:
+            sparse_product(k.indptr, k.indices, k.data, x, y)
+            yc, xc = y.view(np.complex128), x.view(np.complex128)
+            yc[:, 0] += np.multiply(off, xc[:, 1], out=product)
+            yc[:, 1] += np.multiply(off_conj, xc[:, 0], out=product)
+            return y
+        return apply_compiled
+
+    def apply(x: np.ndarray) -> np.ndarray:
+        y = k @ x
+        yc, xc = y.view(np.complex128), x.view(np.complex128)
+        yc[:, 0] += off * xc[:, 1]
+        yc[:, 1] += off.conj() * xc[:, 0]
+        return y
+    return apply
