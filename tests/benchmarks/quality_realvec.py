@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.engine.registry import STAGES as REGISTRY  # noqa: E402  (after the sys.path line)
 
-# The DAG of pipeline.registry without keypoint_edits: here the topology reads the keypoints directly.
+# The DAG of pipeline.engine.registry without keypoint_edits: here the topology reads the keypoints directly.
 STAGES = tuple(s.name for s in REGISTRY if s.name != "keypoint_edits")
 INPUTS = {s.name: tuple("keypoints" if i == "keypoint_edits" else i for i in s.inputs)
           for s in REGISTRY if s.name != "keypoint_edits"}

@@ -400,7 +400,7 @@ def test_a_cached_run_imports_no_heavy_library(tmp_path, cli, monkeypatch):
     assert len(table) == len(STAGES) and all(line.split("│")[2].strip() == "0" for line in table), again.stderr  # 0 computed
     assert (tmp_path / "out" / "vee.svg").exists()
     modules = json.loads((tmp_path / "modules.json").read_text())
-    assert "pipeline.schema" in modules and "stages.flow" in modules     # the listing is there
+    assert "pipeline.engine.config" in modules and "stages.flow" in modules     # the listing is there
     heavy = [m for m in modules if m.split(".")[0] in HEAVY or m.endswith(".stage") or ".keypoints.network" in m]
     assert heavy == [], "a cached run imported " + ", ".join(heavy)
     assert "hydra" not in modules, "a command line whose config is cached imported Hydra"

@@ -57,8 +57,8 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
         Defaults to ``ArtifactStore(cfg.store.path)``.
     on_compile : callable, optional
         Called once, before any work, when a stage with work to do has numba kernels that are not
-        compiled yet and no shipped ones fit this machine (:mod:`pipeline.engine.kernels.shipped`): a first run that
-        takes longer. Its argument says why, in words.
+        compiled yet and no shipped ones fit this machine (:mod:`pipeline.engine.kernels.shipped`): a
+        first run that takes longer. Its argument says why, in words.
 
     Returns
     -------
@@ -148,8 +148,8 @@ def cluster_mode(runtime: dict, pending: list[list[Task]]) -> str:
     ``runtime.workers`` asks for no more processes than the in-process scheduler's threads: worker
     processes each import torch, numba and the stages (~4 CPU-s apiece) and hand tasks over through
     dask, which a few drawings do not repay; the in-process scheduler already runs two tasks at once
-    beside its keypoints child (:class:`~.in_process.InProcessExecutor`). With more images, more workers, and always with a
-    ``scheduler_address``, it uses dask.
+    beside its keypoints child (:class:`~.in_process.InProcessExecutor`). With more images, more
+    workers, and always with a ``scheduler_address``, it uses dask.
     """
     mode = runtime["cluster"]
     if mode != "auto":

@@ -41,7 +41,8 @@ _RUNNING: dict[str, subprocess.Popen] = {}
 
 
 def uncompiled(stages: list[str]) -> list[str]:
-    """The stages of ``stages`` with numba kernels that have no on-disk cache yet (:func:`pipeline.engine.kernels.shipped.is_cached`)."""
+    """The stages of ``stages`` with numba kernels that have no on-disk cache yet
+    (:func:`pipeline.engine.kernels.shipped.is_cached`)."""
     return [s for s in stages if shipped.uncached_modules([s])]
 
 
