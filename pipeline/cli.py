@@ -60,6 +60,7 @@ Examples:
 Other settings: store.path= (artifact store, default artifacts/), runtime.workers=,
 runtime.cluster=sync|local|auto, runtime.scheduler_address=tcp://HOST:PORT.
 Exit status: 0 done, 1 some image failed, 2 usage error, 130 interrupted (re-run to resume).
+polyvec serve [FOLDER] [--port N] [key=value ...]: correct keypoints in the browser (polyvec serve --help).
 See also: polyvec-inspect, polyvec-bench, polyvec-train."""
 
 

@@ -20,7 +20,13 @@ NO_RUN_FLAGS = frozenset({"-h", "--help", "-c", "--cfg", "--info", "--hydra-help
 
 
 def main() -> None:
-    """Console entry point of ``polyvec`` (see :func:`pipeline.cli.main`)."""
+    """Console entry point of ``polyvec`` (see :func:`pipeline.cli.main`); ``polyvec serve …`` is
+    :func:`pipeline.serve.main` (a server: no keypoints child forked for it)."""
+    if sys.argv[1:2] == ["serve"]:
+        from pipeline.serve import main as serve_main
+
+        serve_main(sys.argv[2:])
+        return
     if sys.platform == "linux" and not NO_RUN_FLAGS.intersection(sys.argv[1:]):
         from pipeline.engine.execute.early_child import start_early
 

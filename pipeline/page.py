@@ -133,6 +133,65 @@ def _config_diff(stage: str, config: dict) -> dict:
     return {k: v for k, v in a.items() if b.get(k, object()) != v}
 
 
+def curve_layers(store: ArtifactStore, keys: dict[str, str], prep_data: dict,
+                 load=None) -> tuple[list[dict], dict]:
+    """The layers a keypoint edit or a flow setting changes: candidate paths, selected curves, final
+    curves and their ends (``{"id", "label", "svg", "on"}``, as in :func:`page_data`), and their counts.
+
+    ``polyvec serve`` redraws these alone after a re-run (the drawing, heatmaps, field and graph stay).
+
+    Parameters
+    ----------
+    store : ArtifactStore
+    keys : dict
+        Stage → key (the stages missing from it give no layer).
+    prep_data : dict
+        prep's ``data`` (the exported curves are mapped to the internal picture with it).
+    load : callable, optional
+        ``load(stage, key)`` → artifact; default ``store.load`` (a server passes its memo's).
+    """
+    load = load or store.load
+    layers: list[dict] = []
+    counts: dict = {}
+
+    def add(layer_id: str, label: str, svg: str, on: bool = False) -> None:
+        layers.append({"id": layer_id, "label": label, "svg": svg, "on": on})
+
+    paths = []
+    if "topology" in keys:
+        topo = load("topology", keys["topology"])
+        paths = topo.data.get("paths", [])
+        add("candidates", "candidate paths", f'<path d="{_polyline_d([p["xy"] for p in paths])}" '
+            f'stroke="#9467bd" stroke-opacity="0.6" stroke-width="1" vector-effect="non-scaling-stroke" fill="none"/>')
+        counts["candidate_paths"] = len(paths)
+    if "select" in keys and "flow" in keys:
+        flow = load("flow", keys["flow"])
+        curves = unpack_ragged(flow["curve_xy"], flow["curve_xy_offsets"])
+        ids = {int(p["id"]): k for k, p in enumerate(paths)}
+        chosen = load("select", keys["select"]).data.get("chosen", [])
+        sel = [curves[ids.get(int(c), int(c))] for c in chosen if 0 <= ids.get(int(c), int(c)) < len(curves)]
+        add("selected", "selected curves (flowed)", f'<path d="{_polyline_d(sel)}" stroke="#2ca02c" '
+            f'stroke-width="2.5" stroke-opacity="0.7" vector-effect="non-scaling-stroke" fill="none"/>')
+        counts["selected"] = len(sel)
+    if "export" in keys:
+        from pipeline.render import PALETTE
+
+        ex = load("export", keys["export"]).data.get("curves", [])
+        body, ends = [], []
+        for i, c in enumerate(ex):
+            pts = to_internal(c["points"], prep_data)  # exported in the drawing's pixels
+            body.append(f'<path d="{_polyline_d([pts])}" stroke="{_hex(PALETTE[i % len(PALETTE)])}"/>')
+            for j, p in ((0, pts[0]), (1, pts[-1])):
+                t = int(c.get("end_types", [0, 0])[j])
+                ends.append(f'<circle class="m" cx="{p[0]:.1f}" cy="{p[1]:.1f}" r="2" '
+                            f'fill="{_hex(TYPE_COLOURS.get(t, (0, 0, 0)))}" stroke="#000"/>')
+        add("curves", "final curves", '<g fill="none" stroke-width="2">' + "".join(body) + "</g>", True)
+        add("ends", "curve end points", '<g stroke-width="0.6">'
+            + "".join(ends) + "</g>", True)
+        counts["curves"] = len(ex)
+    return layers, counts
+
+
 def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> dict:
     """Everything the page shows, from the artifacts named by ``keys`` (stage → key).
 
@@ -195,38 +254,9 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
         add("graph", "traced graph", f'<path d="{d}" stroke="#2a5ad7" stroke-width="1" '
             f'vector-effect="non-scaling-stroke" fill="none"/>')
         counts["graph_vertices"], counts["graph_edges"] = len(xy), len(e)
-    paths = []
-    if "topology" in keys:
-        topo = store.load("topology", keys["topology"])
-        paths = topo.data.get("paths", [])
-        add("candidates", "candidate paths", f'<path d="{_polyline_d([p["xy"] for p in paths])}" '
-            f'stroke="#9467bd" stroke-opacity="0.6" stroke-width="1" vector-effect="non-scaling-stroke" fill="none"/>')
-        counts["candidate_paths"] = len(paths)
-    if "select" in keys and "flow" in keys:
-        flow = store.load("flow", keys["flow"])
-        curves = unpack_ragged(flow["curve_xy"], flow["curve_xy_offsets"])
-        ids = {int(p["id"]): k for k, p in enumerate(paths)}
-        chosen = store.load("select", keys["select"]).data.get("chosen", [])
-        sel = [curves[ids.get(int(c), int(c))] for c in chosen if 0 <= ids.get(int(c), int(c)) < len(curves)]
-        add("selected", "selected curves (flowed)", f'<path d="{_polyline_d(sel)}" stroke="#2ca02c" '
-            f'stroke-width="2.5" stroke-opacity="0.7" vector-effect="non-scaling-stroke" fill="none"/>')
-        counts["selected"] = len(sel)
-    if "export" in keys:
-        from pipeline.render import PALETTE
-
-        ex = store.load("export", keys["export"]).data.get("curves", [])
-        body, ends = [], []
-        for i, c in enumerate(ex):
-            pts = to_internal(c["points"], prep.data)  # exported in the drawing's pixels
-            body.append(f'<path d="{_polyline_d([pts])}" stroke="{_hex(PALETTE[i % len(PALETTE)])}"/>')
-            for j, p in ((0, pts[0]), (1, pts[-1])):
-                t = int(c.get("end_types", [0, 0])[j])
-                ends.append(f'<circle class="m" cx="{p[0]:.1f}" cy="{p[1]:.1f}" r="2" '
-                            f'fill="{_hex(TYPE_COLOURS.get(t, (0, 0, 0)))}" stroke="#000"/>')
-        add("curves", "final curves", '<g fill="none" stroke-width="2">' + "".join(body) + "</g>", True)
-        add("ends", "curve end points", '<g stroke-width="0.6">'
-            + "".join(ends) + "</g>", True)
-        counts["curves"] = len(ex)
+    curves, curve_counts = curve_layers(store, keys, prep.data)
+    layers += curves
+    counts.update(curve_counts)
     kps = []
     if "keypoints" in keys:
         det = store.load("keypoints", keys["keypoints"]).data.get("points", [])
@@ -305,9 +335,10 @@ function edits(){const r={format:'polyvec-keypoint-edits',version:1,image:D.imag
 function count(){const e=edits();document.getElementById('edit-count').textContent=
  e.added.length+' added, '+e.removed.length+' removed, '+e.retyped.length+' retyped'}
 function click(cx,cy,target){if(target&&target.classList&&target.classList.contains('kp')){const i=+target.dataset.i,p=pts[i];
-  p.cur=CYCLE[p.cur];if(p.orig===0&&p.cur===0)pts.splice(i,1);draw();return}
+  p.cur=CYCLE[p.cur];if(p.orig===0&&p.cur===0)pts.splice(i,1);draw();edited();return}
  const q=toSvg(cx,cy);if(q.x<0||q.y<0||q.x>W||q.y>H)return;
- const t=+document.querySelector('input[name=addtype]:checked').value;pts.push({x:q.x,y:q.y,orig:0,cur:t});draw()}
+ const t=+document.querySelector('input[name=addtype]:checked').value;pts.push({x:q.x,y:q.y,orig:0,cur:t});draw();edited()}
+function edited(){const f=window.polyvecPage.onEdit;if(f)f()}
 function save(){const text=JSON.stringify(edits(),null,1);document.getElementById('edits-json').value=text;
  const a=document.createElement('a');a.href=URL.createObjectURL(new Blob([text],{type:'application/json'}));
  a.download=D.stem+'.keypoints.json';document.body.appendChild(a);a.click();a.remove();
@@ -326,14 +357,19 @@ document.getElementById('fit').addEventListener('click',()=>{vb={x:0,y:0,w:W,h:H
 document.getElementById('zin').addEventListener('click',()=>{const r=svg.getBoundingClientRect();zoomAt(r.x+r.width/2,r.y+r.height/2,2)});
 document.getElementById('zout').addEventListener('click',()=>{const r=svg.getBoundingClientRect();zoomAt(r.x+r.width/2,r.y+r.height/2,0.5)});
 window.addEventListener('resize',setVB);
-window.polyvecPage={data:D,toScreen,edits,points:pts,zoomAt,setView:(x,y,w)=>{vb={x:x,y:y,w:w,h:w*H/W};setVB()}};
+window.polyvecPage={data:D,toScreen,edits,points:pts,zoomAt,draw,onEdit:null,setView:(x,y,w)=>{vb={x:x,y:y,w:w,h:w*H/W};setVB()}};
 draw();setVB();
 })();
 """
 
 
-def render_html(data: dict) -> str:
-    """The page's HTML text from :func:`page_data`."""
+def render_html(data: dict, live_panel: str = "", live_script: str = "") -> str:
+    """The page's HTML text from :func:`page_data`.
+
+    ``live_panel`` (HTML, at the top of the side panel) and ``live_script`` (run after the page's own
+    script, which sets ``polyvecPage.onEdit`` hooks) are ``polyvec serve``'s additions; the static page
+    has neither.
+    """
     esc = html.escape
     w, h = data["width"], data["height"]
     hidden = ' style="display:none"'
@@ -361,7 +397,7 @@ def render_html(data: dict) -> str:
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>polyvec: {esc(data["stem"])}</title><style>{_CSS}</style></head>
 <body><div id="side"><h1>polyvec · {esc(data["stem"])} <small>({w}×{h})</small></h1>
-<div><code>{esc(data["image"])}</code></div>{notes}
+<div><code>{esc(data["image"])}</code></div>{live_panel}{notes}
 <h2>layers</h2>{toggles}<div>{kp_types}</div>
 <div style="margin-top:6px"><button id="fit">fit</button> <button id="zin">zoom +</button>
 <button id="zout">zoom −</button> <small>wheel: zoom · drag: pan</small></div>
@@ -376,7 +412,7 @@ beside it (or <code>keypoint_edits.file=…</code>)</small></div>
 <div id="main"><svg id="view" xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {w} {h}" preserveAspectRatio="xMidYMid meet">
 {layer_svg}<g id="layer-kp"><g id="kp-layer"></g></g></svg><div id="zoom"></div></div>
 <script type="application/json" id="pv-data">{payload}</script>
-<script>{_JS}</script></body></html>
+<script>{_JS}</script>{f"<script>{live_script}</script>" if live_script else ""}</body></html>
 """
 
 

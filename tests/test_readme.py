@@ -35,6 +35,7 @@ RUN_BY = {
     "Resuming": "tests/test_readme.py::test_the_resume_commands_pick_up_after_ctrl_c",
     "Inspecting intermediate artifacts": "tests/pipeline/test_cli.py::test_readme_inspect_commands",
     "Correcting keypoints on the inspection page": "tests/pipeline/test_inspect_page.py::test_the_readme_commands_run",
+    "Correcting in the browser: polyvec serve": "tests/pipeline/test_serve.py::test_the_readme_commands_run",
     "A remote dask cluster": "tests/test_readme.py::test_the_remote_cluster_commands",
     "Keypoint detector: training and evaluation":
         "tests/pipeline/test_readme_training.py::test_readme_detector_and_bench_commands_run",
