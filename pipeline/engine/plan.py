@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from pipeline.engine import edits
-from pipeline.engine.config import stage_config
 from pipeline.engine.registry import StageSpec
 from pipeline.engine.store import artifact_key, hash_bytes
 
@@ -42,6 +41,9 @@ def plan(images: Iterable[str | Path], cfg: Any, stages: list[StageSpec]) -> lis
     pipeline.engine.edits.EditsError
         When an image's keypoint edits file is unreadable or malformed.
     """
+    # Here, not at the top: the keypoints child unpickles Tasks (this module) and needs no config schemas.
+    from pipeline.engine.config import stage_config
+
     out = []
     configs = {s.name: stage_config(cfg, s.name) for s in stages}
     for image in images:

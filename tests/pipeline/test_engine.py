@@ -773,6 +773,17 @@ def test_a_failed_code_check_leaves_no_keypoints_child(tmp_path, images, compose
     assert not [c for c in multiprocessing.active_children() if c.name.startswith("polyvec-")]
 
 
+def test_the_keypoints_child_and_its_tasks_need_no_config_schemas():
+    """The child's module and the Task it unpickles leave out the config schemas (every stage's package,
+    the bench's and training's dataclasses: 30-50 ms of imports on the child's critical path)."""
+    script = ("import sys\nimport pipeline.engine.execute.child, pipeline.engine.plan\n"
+              "print(sorted(m for m in sys.modules if m in ('pipeline.engine.config', 'stages.evaluate', "
+              "'stages.prep', 'stages.keypoints.training.config')))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_the_keypoints_child_imports_no_more_than_its_stages_need():
     """The keypoints child's start is a small drawing's critical path: what it imports — the CLI
     module again (a spawned child re-imports the console script's ``pipeline.cli``), its stages' code

@@ -9,9 +9,11 @@ records each :class:`TaskResult` in the :class:`BatchResult`; the artifacts them
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
-from pipeline.engine.plan import Task
+if TYPE_CHECKING:   # annotations only: the keypoints child imports this module and needs no config schemas
+    from pipeline.engine.plan import Task
+
 
 
 @dataclass

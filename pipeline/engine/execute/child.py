@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import os
 import threading
+from typing import TYPE_CHECKING
 
 from pipeline.engine.execute.base import TaskResult
 from pipeline.engine.execute.node import execute
 from pipeline.engine.execute.process import THREAD_ENV, keep_network_memory, sigint_held
-from pipeline.engine.plan import Task
 from pipeline.engine.registry import BY_NAME
 from pipeline.engine.store import adopt_library_versions, library_versions
+
+if TYPE_CHECKING:   # annotations only: the keypoints child imports this module and needs no config schemas
+    from pipeline.engine.plan import Task
 
 
 #: Stages an in-process run computes in its child process (``runtime.keypoints_process``): the

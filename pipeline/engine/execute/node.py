@@ -18,15 +18,17 @@ import time
 import traceback
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.engine.execute.base import TaskResult
 from pipeline.engine.execute.process import pin_threads, quiet_full_collections, reuse_freed_memory
 from pipeline.engine.kernels import shipped as kernels
-from pipeline.engine.plan import Task
 from pipeline.engine.registry import BY_NAME
 from pipeline.engine.store import ArtifactStore, item_keys, library_versions
 from stages.errors import InputError
+
+if TYPE_CHECKING:   # annotations only: the keypoints child imports this module and needs no config schemas
+    from pipeline.engine.plan import Task
 
 
 _STORES: dict[str, ArtifactStore] = {}
