@@ -30,22 +30,8 @@ def stretched(lit: np.ndarray, cfg: ContrastConfig) -> np.ndarray:
     """The step as prep runs it: :func:`normalise_contrast` when ``prep.contrast`` is enabled, else the
     grey as it is (float32), refused when blank all the same.
 
-    Parameters
-    ----------
-    lit : numpy.ndarray
-        float (H, W) in [0, 1], 1 = white: the inverted, lighting-flattened grey (or a box of it).
-    cfg : ContrastConfig
-        The ``prep.contrast`` section.
-
-    Returns
-    -------
-    numpy.ndarray
-        float32 (H, W) in [0, 1].
-
-    Raises
-    ------
-    InputError
-        When the grey levels are uniform (no ink at all).
+    ``lit`` is the inverted, lighting-flattened grey (or a box of it), float (H, W) in [0, 1], 1 =
+    white; ``cfg`` the ``prep.contrast`` section. Returns and raises as :func:`normalise_contrast`.
     """
     if cfg.enabled:
         return normalise_contrast(lit, cfg.low_percentile, cfg.high_percentile, cfg.min_contrast)

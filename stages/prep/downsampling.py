@@ -29,25 +29,9 @@ def downsampled(grey: np.ndarray, mask: np.ndarray, width: float, cfg: Downsampl
     """The step as prep runs it (when the grey was not supersampled): ``grey`` at 1/``k`` of the
     resolution (:func:`downsample_factor`) when its strokes are wide, with the console's line.
 
-    Parameters
-    ----------
-    grey : numpy.ndarray
-        float32 (H, W) contrast-normalised grey, 1 = paper.
-    mask : numpy.ndarray
-        bool (H, W): its band.
-    width : float
-        The band's :func:`~stages.prep.width.stroke_width`.
-    cfg : DownsampleConfig
-        The ``prep.downsample`` section.
-
-    Returns
-    -------
-    grey : numpy.ndarray
-        The downsampled grey, or ``grey`` itself.
-    k : int
-        Source pixels per internal pixel (1 = none).
-    notes : list of str
-        What it did, or empty.
+    Its arguments are those of :func:`~stages.prep.supersampling.supersampled`, with the
+    ``prep.downsample`` section as ``cfg``; it returns the downsampled grey (or ``grey`` itself), ``k``
+    (source pixels per internal pixel, 1 = none) and the notes of what it did.
     """
     if not cfg.enabled:
         return grey, 1, []
