@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import os
 import sys
 import tempfile
@@ -116,21 +115,16 @@ class Vectorization:
         ValueError
             When the run stopped before export (``runtime.until``): there is nothing to write.
         """
-        from pipeline.engine.execute.outputs import curves_json
+        from pipeline.engine.execute.outputs import atomic_write, output_texts
 
         if self._export is None:
             raise ValueError("nothing to save: the run stopped before export (runtime.until)")
         path = Path(path)
         stem = path.with_suffix("") if path.suffix.lower() == ".svg" else path
-        payload = {k: v for k, v in self._export.items() if k not in ("svg", "bezier_svg")}
-        payload.update(source=self.source, artifact=self.keys.get("export"))
-        texts = {stem.with_name(stem.name + ".svg"): self.svg,
-                 stem.with_name(stem.name + ".json"): curves_json(payload)}
-        if self.bezier_svg:
-            texts[stem.with_name(stem.name + ".bezier.svg")] = self.bezier_svg
+        texts = output_texts(stem, self._export, self.source, self.keys.get("export"))
         stem.parent.mkdir(parents=True, exist_ok=True)
         for where, text in texts.items():
-            where.write_text(text)
+            atomic_write(where, text)
         return list(texts)
 
 
@@ -218,23 +212,21 @@ def vectorize(image: Any, *overrides: str, store: str | os.PathLike | None = Non
 def _compose(compose_config, line: list[str]):
     """The composed config of ``line``; an error of Hydra's (an unknown key, a value of the wrong type, a
     line it cannot parse) as a ``ValueError`` of one line: its first line and its cause's."""
+    from pipeline.hydra_command import config_error
+
     try:
         return compose_config("config", line)
     except Exception as exc:  # Hydra raises several kinds (others are re-raised)
         if not type(exc).__module__.startswith(("hydra", "omegaconf")):
             raise
-        cause = f" ({_first_line(exc.__cause__)})" if exc.__cause__ is not None else ""
-        raise ValueError(f"the settings do not compose: {_first_line(exc)}{cause}") from None
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return lines[0] if lines else type(exc).__name__
+        raise ValueError(f"the settings do not compose: {config_error(exc)}") from None
 
 
 def _say_compiling(why: str) -> None:
     # the command line's line: a first run on a machine without fitting shipped kernels takes longer
-    print(f"polyvec: compiling kernels, first run only (about half a minute; {why})", file=sys.stderr)
+    from pipeline.console import compile_message
+
+    print(compile_message(why), file=sys.stderr)
 
 
 def _shown(image: Any, source: str) -> str:
@@ -275,9 +267,9 @@ def _image_file(image: Any, store) -> tuple[str, bool]:
     folder.mkdir(parents=True, exist_ok=True)
     where = folder / (hashlib.sha256(content).hexdigest() + suffix)
     if not where.is_file() or where.stat().st_size != len(content):
-        tmp = where.with_name(f".{where.name}.tmp{os.getpid()}")
-        tmp.write_bytes(content)
-        os.replace(tmp, where)   # whole or absent: another process may vectorise the same array
+        from pipeline.engine.execute.outputs import atomic_write
+
+        atomic_write(where, content)   # whole or absent: another process may vectorise the same array
     return str(where), True
 
 
@@ -355,7 +347,7 @@ def _array_png(a: np.ndarray) -> bytes:
 # -- the result --------------------------------------------------------------------------------
 def _result(source: str, keys: dict[str, str], store) -> Vectorization:
     """The :class:`Vectorization` of a drawing's stored artifacts (``keys``: stage → key)."""
-    export = _data(store, "export", keys["export"]) if "export" in keys else None
+    export = store.load_data("export", keys["export"]) if "export" in keys else None
     curves = []
     for c in (export or {}).get("curves", []):
         c = dict(c)
@@ -379,18 +371,10 @@ def _keypoints(store, keys: dict[str, str]) -> list[tuple[float, float, int]]:
 
     if "keypoints" not in keys:
         return []
-    detected = _data(store, "keypoints", keys["keypoints"])
-    points = (_data(store, "keypoint_edits", keys["keypoint_edits"]) if "keypoint_edits" in keys
+    detected = store.load_data("keypoints", keys["keypoints"])   # not its heatmaps
+    points = (store.load_data("keypoint_edits", keys["keypoint_edits"]) if "keypoint_edits" in keys
               else detected)["points"]
     if not points:
         return []
     xy = to_source([(p["x"], p["y"]) for p in points], detected)
     return [(float(x), float(y), int(p["type"])) for (x, y), p in zip(xy, points)]
-
-
-def _data(store, stage: str, key: str) -> dict:
-    """An artifact's JSON data alone: the keypoints' heatmaps (4 × H × W floats) are not read."""
-    from pipeline.engine.store import DATA
-
-    with store.fs.open(f"{store.path_for(stage, key)}/{DATA}", "r") as f:
-        return json.load(f)

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pipeline.console import PROGRESS, StageProgress, print_summary
+from pipeline.console import PROGRESS, StageProgress, compile_message, print_summary
 from pipeline.engine.execute.base import BatchResult
 from pipeline.engine.execute.batch import run_batch, validated_stages
 from pipeline.engine.execute.dask_cluster import ClusterError
@@ -104,8 +104,8 @@ def run(cfg: DictConfig, inputs: list[str] | None = None) -> BatchResult:
     with StageProgress(stages, len(images), bool(cfg.runtime.get("progress", True)) and console.is_terminal) as prog:
         try:
             batch = run_batch(images, cfg, on_result=PROGRESS.counting(prog), store=store,
-                              on_compile=lambda why: console.print("polyvec: compiling kernels, first run only "
-                                                                   f"(about half a minute; {why})", highlight=False, soft_wrap=True))
+                              on_compile=lambda why: console.print(compile_message(why), highlight=False,
+                                                                   soft_wrap=True))
         except ClusterError as exc:
             store.remove_if_unused()  # a run that did nothing leaves no empty store folder
             raise UsageError(str(exc)) from None

@@ -6,6 +6,11 @@ from __future__ import annotations
 from pipeline.engine.execute.base import BatchResult, TaskResult
 from pipeline.engine.registry import BY_NAME
 
+def compile_message(why: str) -> str:
+    """The line a run prints before its numba kernels compile (a first run that takes longer)."""
+    return f"polyvec: compiling kernels, first run only (about half a minute; {why})"
+
+
 #: Redraws a second of the live progress display (:class:`StageProgress`).
 REFRESH_PER_SECOND = 2
 

@@ -56,6 +56,12 @@ _OVERRIDE = re.compile(r"^[+~]{0,2}[A-Za-z_][\w\-./@\[\]]*(=|$)")
 _EDITS_ALIAS = "keypoints.edits="
 
 
+def is_override(arg: str) -> bool:
+    """Whether a command-line argument is a ``key=value`` override (and not a path that happens to
+    hold ``=``: an existing file of that name is a path)."""
+    return "=" in arg and bool(_OVERRIDE.match(arg)) and not os.path.lexists(arg)
+
+
 def split_arguments(argv: list[str], positional: bool = True) -> tuple[list[str], list[str]]:
     """Split a command line into Hydra's arguments and the paths to vectorise.
 
@@ -92,7 +98,7 @@ def split_arguments(argv: list[str], positional: bool = True) -> tuple[list[str]
             # The issue's and the page's spelling; the edits live in a stage of their own so that the
             # detector's key (its config section) does not change when a correction is made.
             hydra_args.append("keypoint_edits.file=" + a[len(_EDITS_ALIAS):])
-        elif "=" in a and _OVERRIDE.match(a) and not os.path.lexists(a):
+        elif is_override(a):
             hydra_args.append(a)
         else:
             paths.append(a)
@@ -127,16 +133,16 @@ def check_overrides(args: list[str]) -> bool:
     try:
         parsed = parser.parse_overrides(overrides)
     except Exception as exc:  # noqa: BLE001 - hydra raises several kinds; all are usage errors
-        raise UsageError(f"cannot read the arguments: {_first_line(exc)} (quote odd characters: key='value', "
+        raise UsageError(f"cannot read the arguments: {first_line(exc)} (quote odd characters: key='value', "
                          "or give input paths as plain arguments)") from None
     return (len(overrides) == len(args)
             and not any(o.is_sweep_override() or o.is_hydra_override() for o in parsed))
 
 
-def _config_error(exc: BaseException) -> str:
+def config_error(exc: BaseException) -> str:
     """One line for an error Hydra raised composing the config: its first line and its cause's."""
-    cause = f" ({_first_line(exc.__cause__)})" if exc.__cause__ is not None else ""
-    return _first_line(exc) + cause
+    cause = f" ({first_line(exc.__cause__)})" if exc.__cause__ is not None else ""
+    return first_line(exc) + cause
 
 
 @contextmanager
@@ -188,7 +194,7 @@ def sweep_jobs(config_name: str, args: list[str]) -> list[tuple[list[str], str]]
     try:
         parsed = parser.parse_overrides(overrides)
     except Exception as exc:  # noqa: BLE001 - hydra raises several kinds; all are usage errors
-        raise UsageError(f"cannot read the arguments: {_first_line(exc)}") from None
+        raise UsageError(f"cannot read the arguments: {first_line(exc)}") from None
     if any(o.is_hydra_override() or o.value_type == ValueType.GLOB_CHOICE_SWEEP for o in parsed):
         return None
     import yaml
@@ -209,7 +215,8 @@ def _flag_values(args: list[str]) -> set[str]:
     return {args[i + 1] for i, a in enumerate(args[:-1]) if a in _HYDRA_VALUE_FLAGS}
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    """An exception's first non-blank line (its type's name when it has none)."""
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
     return lines[0] if lines else type(exc).__name__
 
@@ -305,7 +312,7 @@ class ExitCode:
                 raise  # from a job (a bug): its traceback, exit 1
             # Raised by Hydra before any job started (a multirun composes every job's config first):
             # the config does not compose with these overrides.
-            print(f"{self.prog}: error: {_config_error(exc)}", file=sys.stderr)
+            print(f"{self.prog}: error: {config_error(exc)}", file=sys.stderr)
             self.code = 2
         finally:
             from pipeline.engine.execute.dask_cluster import close_client

@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.engine.config import default_config
-from pipeline.engine.lookup import planned_keys
-from pipeline.engine.registry import STAGES
+from pipeline.engine.lookup import STAGE_ORDER, planned_keys
 from pipeline.engine.store import ArtifactStore
 from stages.artifact import unpack_ragged
 from stages.prep import internal_origin, internal_scale, source_size, to_internal
@@ -33,7 +32,6 @@ from stages.topology.topology_picture import TYPE_COLOURS
 
 MAX_CROSSES = 2500
 HEATMAP_PX = 512
-STAGE_ORDER = [s.name for s in STAGES]
 TYPE_NAMES = {1: "endpoint", 3: "junction", 5: "corner"}
 
 
@@ -272,7 +270,7 @@ def page_data(store: ArtifactStore, keys: dict[str, str], image: str | Path) -> 
                     kps[e["keypoint"]]["cur"] = int(e["type"])
         counts["keypoints"] = {TYPE_NAMES[t]: sum(p["cur"] == t for p in kps) for t in (1, 3, 5)}
     rows, notes = [], []
-    for stage in STAGE_ORDER:
+    for stage in STAGE_ORDER:   # the DAG's order
         if stage not in keys:
             continue
         m = store.manifest(stage, keys[stage])

@@ -32,7 +32,8 @@ from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Route
 
 from pipeline.engine.edits import edits_path_for
-from pipeline.hydra_command import UsageError
+from pipeline.engine.execute.outputs import atomic_write
+from pipeline.hydra_command import UsageError, is_override
 from pipeline.inputs import IMAGE_SUFFIXES
 from pipeline.serve_html import list_page, live_panel, live_script, message_page
 from pipeline.serve_worker import Drawing, Runner
@@ -96,12 +97,7 @@ def write_edits(drawing: Drawing, doc) -> Path:
     except InputError as exc:
         raise HTTPException(400, f"edits: {exc}") from None
     target = edits_path_for(drawing.path)
-    tmp = target.with_name(f".{target.name}.tmp{os.getpid()}")
-    try:   # whole or not at all: the worker may be reading the previous one
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(target, json.dumps(doc, indent=1) + "\n")   # the worker may be reading the previous one
     return target
 
 
@@ -207,8 +203,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("folder", nargs="?", default=".", help="the drawings (searched recursively; default .)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"default {DEFAULT_PORT}")
     parser.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1 (this machine only)")
-    # key=value overrides anywhere after the folder, as `polyvec` takes them
-    overrides = [a for a in argv if "=" in a and not a.startswith("-") and not Path(a).exists()]
+    # key=value overrides anywhere after the folder, told from paths as `polyvec` tells them
+    overrides = [a for a in argv if is_override(a)]
     args = parser.parse_args([a for a in argv if a not in overrides])
     args.overrides = overrides
     if not Path(args.folder).is_dir():

@@ -346,8 +346,7 @@ class ArtifactStore:
         if not self.exists(stage, key):
             raise KeyError(f"{stage}/{key} is not in the store {self.url}")
         path = self.path_for(stage, key)
-        with self.fs.open(f"{path}/{DATA}", "r") as f:
-            data = json.load(f)
+        data = self.load_data(stage, key)
         arrays = {}
         manifest = self.manifest(stage, key)
         if manifest.get("arrays"):
@@ -357,6 +356,11 @@ class ArtifactStore:
             for name in manifest["arrays"]:
                 arrays[name] = group[name][...]
         return Artifact(arrays=arrays, data=data)
+
+    def load_data(self, stage: str, key: str) -> dict:
+        """An artifact's JSON data alone, its arrays not read (the keypoints' heatmaps are 4 × H × W floats)."""
+        with self.fs.open(f"{self.path_for(stage, key)}/{DATA}", "r") as f:
+            return json.load(f)
 
     def manifest(self, stage: str, key: str) -> dict:
         """The manifest of a stored artifact."""

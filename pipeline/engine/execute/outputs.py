@@ -46,18 +46,13 @@ def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Pa
         r = per.get("export")
         if r is None or r.status not in ("computed", "cached"):
             continue
-        art = load_artifact(store, "export", r.key)
-        name = str(names[image])
-        payload = {k: v for k, v in art.data.items() if k not in ("svg", "bezier_svg")}
-        payload.update(source=str(image), artifact=r.key)
-        texts = {output_dir / f"{name}.svg": art.data["svg"], output_dir / f"{name}.json": curves_json(payload)}
-        if art.data.get("bezier_svg"):
-            texts[output_dir / f"{name}.bezier.svg"] = art.data["bezier_svg"]
-        where = (output_dir / name).parent
+        texts = output_texts(output_dir / names[image], load_artifact(store, "export", r.key).data, str(image),
+                             r.key)
+        where = (output_dir / names[image]).parent
         try:
             where.mkdir(parents=True, exist_ok=True)
             for where, text in texts.items():
-                _atomic_write(where, text)
+                atomic_write(where, text)
         except OSError as exc:
             # one image's files (a sub-folder's name taken by a file, a full disk): its error line,
             # the other images' files still written; what it wrote stays (whole files only)
@@ -66,6 +61,18 @@ def write_outputs(batch: BatchResult, store: ArtifactStore, output_dir: str | Pa
         written[image] = [str(p) for p in texts]
     batch.outputs = written
     return written
+
+
+def output_texts(stem: Path, export: dict, source: str, key: str | None) -> dict[Path, str]:
+    """The files of one exported drawing, ``<stem>.svg``, ``<stem>.json`` (and ``<stem>.bezier.svg``),
+    by path: the export artifact's ``data`` with the input's path and the artifact's key in the JSON."""
+    payload = {k: v for k, v in export.items() if k not in ("svg", "bezier_svg")}
+    payload.update(source=source, artifact=key)
+    texts = {stem.with_name(stem.name + ".svg"): export["svg"],
+             stem.with_name(stem.name + ".json"): curves_json(payload)}
+    if export.get("bezier_svg"):
+        texts[stem.with_name(stem.name + ".bezier.svg")] = export["bezier_svg"]
+    return texts
 
 
 def curves_json(payload: dict) -> str:
@@ -85,10 +92,15 @@ def curves_json(payload: dict) -> str:
     return "{\n" + ",\n".join(lines) + "\n}\n"
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def atomic_write(path: Path, content: str | bytes) -> None:
+    """Write a file whole or not at all (a temporary file renamed into place): a reader — another
+    process, the next run — never sees half of it."""
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        tmp.write_text(text)
+        if isinstance(content, bytes):
+            tmp.write_bytes(content)
+        else:
+            tmp.write_text(content)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
