@@ -366,7 +366,8 @@ def render_html(data: dict, live_panel: str = "", live_script: str = "") -> str:
 
     ``live_panel`` (HTML, at the top of the side panel) and ``live_script`` (run after the page's own
     script, which sets ``polyvecPage.onEdit`` hooks) are ``polyvec serve``'s additions; the static page
-    has neither.
+    has neither. The static page's "save edits" box is hidden on a live page: the server writes each
+    edit itself.
     """
     esc = html.escape
     w, h = data["width"], data["height"]
@@ -401,10 +402,10 @@ def render_html(data: dict, live_panel: str = "", live_script: str = "") -> str:
 <button id="zout">zoom −</button> <small>wheel: zoom · drag: pan</small></div>
 <h2>keypoint edits</h2><div><small>click the drawing: add a</small></div><div>{add_types}</div>
 <div><small>click a keypoint: endpoint → junction → corner → removed</small></div>
-<div id="edit-count"></div><button id="save">save edits</button> <span id="saved"></span>
+<div id="edit-count"></div><div id="static-save"{hidden if live_panel else ""}><button id="save">save edits</button> <span id="saved"></span>
 <textarea id="edits-json" readonly placeholder="the edits JSON appears here on save (copy it to {esc(data["stem"])}.keypoints.json)"></textarea>
 <div><small>then: <code>polyvec input={esc(data["image"])}</code> picks up <code>{esc(data["stem"])}.keypoints.json</code>
-beside it (or <code>keypoint_edits.file=…</code>)</small></div>
+beside it (or <code>keypoint_edits.file=…</code>)</small></div></div>
 <h2>stages</h2><table id="stages"><tr><th>stage</th><th>key</th><th>s</th><th>peak MB</th><th>config ≠ default</th></tr>{rows}</table>
 <h2>counts</h2><table id="counts">{counts}</table></div>
 <div id="main"><svg id="view" xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {w} {h}" preserveAspectRatio="xMidYMid meet">

@@ -244,6 +244,8 @@ def test_browser_edit_a_keypoint_and_lambda_redraw_in_place(server):
                      ready="window.polyvecLive !== undefined")
         before = _curves(browser)
         assert before.count("<path") > 3
+        # the server writes each edit: the static page's "save edits" box is not shown
+        assert browser.eval("document.getElementById('save').offsetParent === null")
         # zoom in; the view must stay through the redraws
         browser.eval("polyvecPage.setView(60, 40, 150)")
         view = browser.eval("document.getElementById('view').getAttribute('viewBox')")
