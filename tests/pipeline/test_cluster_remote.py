@@ -117,7 +117,7 @@ def test_a_worker_killed_mid_batch_leaves_the_svgs_byte_identical(tmp_path, cli,
         client.wait_for_workers(2, timeout=180)
 
     remote = subprocess.Popen([sys.executable, "-m", "pipeline.launch", *run[1:]], cwd=tmp_path, env=_env(),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     groups = {w.pid for w in workers}
     stored_by: dict[int, list[Path]] = {g: [] for g in groups}
     seen: set[Path] = set()
@@ -132,17 +132,16 @@ def test_a_worker_killed_mid_batch_leaves_the_svgs_byte_identical(tmp_path, cli,
                     stored_by[group].append(manifest)
             done = len(list(store.glob("export/*/*/manifest.json")))
             victim = next((g for g, m in stored_by.items() if len(m) >= KILL_AFTER), None)
-            if victim is not None and done < len(DRAWINGS):
+            if victim is not None and done < len(DRAWINGS) and remote.poll() is None:
                 os.killpg(victim, signal.SIGKILL)
                 killed = (victim, time.time(), done)
             time.sleep(0.02)
-        still_running = remote.poll() is None
         _, err = remote.communicate(timeout=600)
     finally:
         if remote.poll() is None:
             remote.kill()
             remote.wait()
-    assert killed is not None and still_running, "no worker was killed while polyvec ran"
+    assert killed is not None, "no worker was killed while polyvec ran"
     assert remote.returncode == 0, err[-2000:]
     victim, at, done = killed
     assert done < len(DRAWINGS)
