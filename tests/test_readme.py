@@ -36,7 +36,8 @@ RUN_BY = {
     "Inspecting intermediate artifacts": "tests/pipeline/test_cli.py::test_readme_inspect_commands",
     "Correcting keypoints on the inspection page": "tests/pipeline/test_inspect_page.py::test_the_readme_commands_run",
     "Correcting in the browser: polyvec serve": "tests/pipeline/test_serve.py::test_the_readme_commands_run",
-    "A remote dask cluster": "tests/test_readme.py::test_the_remote_cluster_commands",
+    "A remote dask cluster":
+        "tests/pipeline/test_cluster_remote.py::test_a_worker_killed_mid_batch_leaves_the_svgs_byte_identical",
     "Keypoint detector: training and evaluation":
         "tests/pipeline/test_readme_training.py::test_readme_detector_and_bench_commands_run",
     "Evaluation: `polyvec-bench`": "tests/pipeline/test_readme_training.py::test_readme_detector_and_bench_commands_run",

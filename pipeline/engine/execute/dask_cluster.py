@@ -11,6 +11,7 @@ one cluster.
 from __future__ import annotations
 
 import os
+import socket
 import sys
 from typing import Any, Callable
 
@@ -61,6 +62,44 @@ def _sees_marker(url: str, marker: str) -> bool:
         return False
 
 
+def check_scheduler_listening(address: str, timeout_s: float) -> None:
+    """Refuse, at once, a TCP scheduler address where nothing listens or whose host is unknown.
+
+    dask's ``Client`` retries a refused connection until its timeout (``runtime.connect_timeout_s``,
+    30 s by default) and then names no cause; one plain connection tells a scheduler that is not
+    there (refused: immediately) from one that is slow to answer (``timeout_s``). The scheduler
+    logs this connection as closed before its handshake, one INFO line per run.
+
+    Raises
+    ------
+    ClusterError
+        ``address`` is malformed, nothing listens there, its host is unknown, or it does not answer
+        within ``timeout_s``.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme not in ("tcp", "tls"):  # inproc://, ucx://: dask's own connect decides
+            return
+        host, port = parse_host_port(location)
+    except ValueError:
+        raise ClusterError(f"{address!r} is not a dask scheduler address (tcp://HOST:PORT)") from None
+    why = None
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except ConnectionRefusedError:
+        why = "nothing listens there: start it with `dask scheduler`"
+    except socket.gaierror:
+        why = f"unknown host {host}"
+    except TimeoutError:
+        why = f"no answer within {timeout_s:g} s"
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+    if why:
+        raise ClusterError(f"cannot reach the dask scheduler at {address}: {why}")
+
+
 _CLIENT: Any = None
 _CLIENT_SPEC: tuple | None = None
 
@@ -80,6 +119,7 @@ def get_client(runtime: dict):
         return _CLIENT
     close_client()
     if address:
+        check_scheduler_listening(address, runtime["connect_timeout_s"])
         try:
             client = Client(address, timeout=runtime["connect_timeout_s"])
         except (OSError, TimeoutError) as exc:
