@@ -60,6 +60,15 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on (for a dask scheduler, or an address without one)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def wait_for_dask_worker(address: str, timeout_s: float = 60.0) -> None:
     """Wait until the dask scheduler at ``address`` has a worker; fail the test after ``timeout_s``."""
     import time

@@ -15,7 +15,6 @@ import os
 import re
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -103,12 +102,6 @@ def _manifests(store: Path, stage: str) -> list[Path]:
 
 def _env() -> dict[str, str]:
     return dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # -- the README as a whole ---------------------------------------------------------------------
@@ -214,51 +207,3 @@ def test_the_resume_commands_pick_up_after_ctrl_c(tmp_path, cli):
     assert {p: p.stat().st_mtime_ns for p in stored} == stored          # read back, not computed again
     out = tmp_path / next(a for a in first if a.startswith("output=")).split("=", 1)[1]
     assert sorted(p.name for p in out.glob("*.svg")) == ["cross.svg", "tee.svg", "vee.svg"]
-
-
-@pytest.mark.slow
-def test_the_remote_cluster_commands(tmp_path, cli):
-    """A real ``dask scheduler`` and ``dask worker`` on loopback (a free port for HOST:8786, one worker
-    process), then the README's ``polyvec`` against them on two drawings, stopped after prep."""
-    from conftest import wait_for_dask_worker
-
-    scheduler, worker, run = (shlex.split(_command(line)) for line in _lines("A remote dask cluster"))
-    assert scheduler[:2] == ["dask", "scheduler"] and worker[:2] == ["dask", "worker"] and run[0] == "polyvec"
-    here = f"127.0.0.1:{_free_port()}"
-    shared = tmp_path / "shared"
-
-    def adapt(args: list[str]) -> list[str]:
-        return [a.replace("HOST:8786", here).replace("/shared/", f"{shared}/") for a in args]
-
-    scheduler = adapt(scheduler) + ["--host", "127.0.0.1", "--port", here.split(":")[1], "--no-dashboard"]
-    worker = adapt(worker)
-    if "--nworkers" in worker:   # one worker process is enough here
-        worker[worker.index("--nworkers") + 1] = "1"
-    worker += ["--no-dashboard"]
-    run = adapt(run)
-    assert f"runtime.scheduler_address=tcp://{here}" in run
-    folder = Path(next(a for a in run[1:] if "=" not in a))
-    folder.mkdir(parents=True)
-    for name, drawing in (("line", synthetic.line(size=48)), ("vee", synthetic.vee(size=48))):
-        (folder / f"{name}.png").write_bytes(drawing.png_bytes())
-    elsewhere = tmp_path / "cluster"       # the scheduler and the worker run in a folder of their own
-    elsewhere.mkdir()
-    procs = []
-    try:
-        for args in (scheduler, worker):
-            procs.append(subprocess.Popen([sys.executable, "-m", "dask", *args[1:]], cwd=elsewhere, env=_env(),
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        wait_for_dask_worker(f"tcp://{here}")
-        proc = cli(*run[1:], "runtime.until=prep", cwd=tmp_path)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-    finally:
-        for p in procs[::-1]:
-            p.terminate()
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-    store = Path(next(a for a in run if a.startswith("store.path=")).split("=", 1)[1])
-    assert len(_manifests(store, "prep")) == 2
-    assert not (tmp_path / "artifacts").exists() and not (elsewhere / "artifacts").exists()

@@ -643,23 +643,6 @@ def test_local_cluster_leaves_port_8787_alone(tmp_path, cli):
     assert "8787" not in proc.stderr and "Warning" not in proc.stderr, proc.stderr
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_unreachable_scheduler_is_one_line_and_leaves_no_store(tmp_path, cli):
-    (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
-    proc = cli("line.png", f"runtime.scheduler_address=tcp://127.0.0.1:{_free_port()}",
-               "runtime.connect_timeout_s=2", cwd=tmp_path)
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and "cannot reach the dask scheduler" in proc.stderr
-    assert not (tmp_path / "artifacts").exists()
-
-
 @pytest.mark.slow
 def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
     """Workers started in another directory write to the driver's relative store; a store they cannot
@@ -667,7 +650,9 @@ def test_remote_scheduler_with_the_default_relative_store(tmp_path, cli):
     import subprocess
     import sys
 
-    port = _free_port()
+    from conftest import free_port
+
+    port = free_port()
     addr = f"tcp://127.0.0.1:{port}"
     elsewhere = tmp_path / "worker-cwd"
     elsewhere.mkdir()

@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 import pytest
-from test_readme import _command, _free_port, _lines
+from conftest import free_port
+from test_readme import _command, _lines
 
 from pipeline.engine.execute.process import THREAD_ENV
 from stages import synthetic
@@ -87,7 +88,7 @@ def test_a_worker_killed_mid_batch_leaves_the_svgs_byte_identical(tmp_path, cli,
 
     scheduler, worker, run = (shlex.split(_command(line)) for line in _lines("A remote dask cluster"))
     assert scheduler[:2] == ["dask", "scheduler"] and worker[:2] == ["dask", "worker"] and run[0] == "polyvec"
-    port = _free_port()
+    port = free_port()
     address, shared = f"tcp://127.0.0.1:{port}", tmp_path / "shared"
 
     def adapt(args: list[str]) -> list[str]:
@@ -160,7 +161,7 @@ def test_a_scheduler_that_is_not_there_is_one_line_at_once(tmp_path, cli, addres
     """Nothing listening at the address (or no address at all): exit status 2 and one line, well within
     the connect timeout (dask's client retries a refused connection until it), no store left behind."""
     (tmp_path / "line.png").write_bytes(synthetic.line(size=40).png_bytes())
-    address = address.format(port=_free_port())
+    address = address.format(port=free_port())
     start = time.monotonic()
     proc = cli("line.png", f"runtime.scheduler_address={address}", "runtime.connect_timeout_s=60", cwd=tmp_path)
     elapsed = time.monotonic() - start

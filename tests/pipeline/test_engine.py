@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import socket
 import subprocess
 import sys
 import time
@@ -249,16 +248,12 @@ def test_local_cluster_workers_reuse_freed_arrays_memory(tmp_path, images, compo
     assert counts and all(c < 40 * 10 for c in counts.values())
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_existing_scheduler_and_worker_processes(tmp_path, images, compose_cfg):
     """runtime.scheduler_address joins a dask scheduler and worker started as separate processes."""
-    port = _free_port()
+    from conftest import free_port
+
+    port = free_port()
     addr = f"tcp://127.0.0.1:{port}"
     bin_dir = [sys.executable, "-m"]
     sched = subprocess.Popen(bin_dir + ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
