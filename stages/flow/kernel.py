@@ -432,7 +432,9 @@ def _pack_field(c0: np.ndarray, c2: np.ndarray) -> np.ndarray:
     """
     h, w = c0.shape
     fld = np.zeros((h + 2, w + 2, 4), np.float64)
-    fld[1:-1, 1:-1] = np.stack([c0.real, c0.imag, c2.real, c2.imag], axis=-1)
+    # Channel by channel from views: a stacked temporary was a second page-sized copy (+190 MB at 2000×3000).
+    for k, part in enumerate((c0.real, c0.imag, c2.real, c2.imag)):
+        fld[1:-1, 1:-1, k] = part
     return fld
 
 

@@ -9,6 +9,7 @@ the same flat arrays, without building per-component graphs.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -58,8 +59,10 @@ class WorkGraph:
     def n_vertices(self) -> int:
         return len(self.xy)
 
-    @property
+    @cached_property
     def degree(self) -> np.ndarray:
+        """int64 (V,) graph valence; computed once (the key vertices ask for it per keypoint, the
+        enumeration per component: recomputed, it cost O(V) each time, O(V²) on a page)."""
         return np.diff(self.indptr)
 
     def arc_tail(self) -> np.ndarray:
