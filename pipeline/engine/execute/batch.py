@@ -23,7 +23,7 @@ from pipeline.engine.execute.in_process import SYNC_THREADS, InProcessExecutor
 from pipeline.engine.kernels import shipped as kernels
 from pipeline.engine.kernels import warmup
 from pipeline.engine.plan import Task, plan
-from pipeline.engine.registry import active_stages, check_stage
+from pipeline.engine.registry import BY_NAME, active_stages, check_stage
 from pipeline.engine.store import ArtifactStore
 
 
@@ -82,9 +82,17 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             # A stored artifact is a hit even when an upstream one was evicted from the store.
             if store.exists(t.stage, t.key):
                 per[t.stage] = TaskResult(t.image, t.stage, t.key, "cached")
-                report(per[t.stage])
+            elif (up := next((i for i in BY_NAME[t.stage].inputs
+                              if i in per and per[i].status in ("failed", "skipped")), None)) is not None:
+                per[t.stage] = TaskResult(t.image, t.stage, t.key, "skipped", error=f"upstream {up} failed")
+            elif (failure := store.failure(t.stage, t.key)) is not None:
+                # failed on this very input and config before (store.save_failure): reported as a hit
+                # is, no process started or stage imported for it (stages/DECISIONS.md, engine)
+                per[t.stage] = TaskResult(t.image, t.stage, t.key, "failed", error=failure["error"], stored=True)
             else:
                 todo_final.append(t)
+                continue
+            report(per[t.stage])
         if todo_final:
             pending.append(todo_final)
 
