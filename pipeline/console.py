@@ -42,6 +42,16 @@ class StageProgress:
     drawings (and those a stored failure ends, :meth:`pipeline.engine.store.ArtifactStore.failure`) are
     reported before any work and count on neither side; on dask the drawings overlap, so the seconds per
     drawing are the batch's throughput, not one drawing's time.
+
+    Parameters
+    ----------
+    stages : list of str
+        The run's stages, in order; the last one's results count the drawings done.
+    n_images : int
+    enabled : bool
+        False: nothing is drawn (not a terminal, ``runtime.progress=false``); the counts still are.
+    console : rich.console.Console, optional
+        Where it is drawn (rich's default console when None).
     """
 
     def __init__(self, stages: list[str], n_images: int, enabled: bool, console=None):
