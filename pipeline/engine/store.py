@@ -8,6 +8,8 @@ Layout under the store root::
     .items/<stage>/<image key>/<uuid>.pack  per-item results of a per-item stage (the flow's paths),
                                             one pack per computation, reused across artifacts
                                             (:mod:`pipeline.engine.execute.node`)
+    .failures/<stage>/<key[:2]>/<key>.json  a task that failed on its input (not an image, no ink):
+                                            the error, under the key its artifact would have had
     .tmp/<uuid>/                            artifacts being written
 
 An artifact is written completely into ``.tmp/<uuid>`` and then renamed into place. A rename of a
@@ -24,6 +26,12 @@ results it wants (a sweep of ten λ values leaves ten packs, ~0.7 MB each for th
 (truncated, corrupted: the digest) is simply absent, and the engine computes the item again. (Stores
 written before packs kept one file per result under ``.items/<stage>/<key[:2]>/``; nothing reads them,
 and the next run's :meth:`ArtifactStore.sweep_tmp` removes them.)
+
+A task that fails on its input (:class:`stages.errors.InputError`: a junk file, a blank page) leaves a
+*failure record* instead of an artifact, filed under the task's key: the key already hashes the image's
+bytes, the stage's version and its config section (:func:`artifact_key`), so the next run of the same
+command finds the record and reports the failure without running anything for the image, and a changed
+file, config or stage version is a new key, tried again (:meth:`ArtifactStore.save_failure`).
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ from stages.artifact import Artifact
 
 MANIFEST = "manifest.json"
 ITEMS = ".items"
+FAILURES = ".failures"
 ITEM_MAGIC = b"polyvec-item 1\n"
 PACK_MAGIC = b"polyvec-items 1\n"
 DATA = "data.json"
@@ -269,6 +278,43 @@ class ArtifactStore:
         finally:
             if self.fs.exists(tmp):
                 self.fs.rm(tmp, recursive=True)
+
+    def save_failure(self, stage: str, key: str, record: dict) -> None:
+        """Record that the task ``key`` of ``stage`` failed on its input, so that the next run with the
+        same key reports it without running the stage (:meth:`failure`); written whole or not at all.
+
+        Parameters
+        ----------
+        stage, key : str
+            The task's stage and key (:func:`artifact_key`).
+        record : dict
+            JSON-able; ``record["error"]`` is the one line the run printed.
+        """
+        final = self._join(FAILURES, stage, key[:2], f"{key}.json")
+        text = json.dumps(record, default=_json_default)
+        self.fs.makedirs(self._join(FAILURES, stage, key[:2]), exist_ok=True)
+        if not self.local:
+            with self.fs.open(final, "w") as f:
+                f.write(text)
+            return
+        self.fs.makedirs(self._join(".tmp"), exist_ok=True)
+        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.failure")
+        try:
+            with open(tmp, "w") as f:
+                f.write(text)
+            os.replace(tmp, final)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+    def failure(self, stage: str, key: str) -> dict | None:
+        """The failure record of a task (:meth:`save_failure`), None when it has none or it is unreadable."""
+        try:
+            with self.fs.open(self._join(FAILURES, stage, key[:2], f"{key}.json"), "r") as f:
+                record = json.load(f)
+        except (OSError, ValueError):
+            return None
+        return record if isinstance(record, dict) and isinstance(record.get("error"), str) else None
 
     def _write_arrays(self, path: str, arrays: dict[str, np.ndarray]) -> None:
         import zarr

@@ -186,3 +186,20 @@ def test_library_versions_are_looked_up_once_per_process_or_taken_from_the_paren
     assert store_mod.library_versions() == {"numpy": "1.0"} and len(calls) == 7
     store_mod.adopt_library_versions({"numpy": "2.0"})
     assert store_mod.library_versions() == {"numpy": "1.0"}
+
+
+@pytest.mark.parametrize("url", ["local", "memory://polyvec-failures"])
+def test_failure_records_round_trip(tmp_path, url):
+    """A task's failure on its input is filed under its key; an unreadable record is no record (the task
+    runs again) and a record is not an artifact."""
+    store = ArtifactStore(tmp_path / "store" if url == "local" else url)
+    key = artifact_key("prep", "1", {"threshold": 0.6}, {"image": "abc"})
+    assert store.failure("prep", key) is None
+    store.save_failure("prep", key, {"stage": "prep", "key": key, "error": "not an image (unrecognised file format)"})
+    assert store.failure("prep", key)["error"] == "not an image (unrecognised file format)"
+    assert not store.exists("prep", key) and store.failure("field", key) is None
+    assert not list(store.iter_manifests())
+    if url == "local":
+        (tmp_path / "store" / ".failures" / "prep" / key[:2] / f"{key}.json").write_text('{"error": ')
+        assert store.failure("prep", key) is None
+        assert not list((tmp_path / "store" / ".tmp").iterdir())

@@ -29,6 +29,7 @@ class TaskResult:
     duration_s: float = 0.0
     warnings: tuple[str, ...] = ()  # the artifact's guard notes (computed now; a cached one keeps them in its manifest)
     items: tuple[int, int] | None = None  # a per-item stage computed now: (items reused from the store, items)
+    stored: bool = False  # a failure an earlier run recorded for this key (store.failure): not run again
 
 
 @dataclass

@@ -5,7 +5,9 @@ All keys are computed up front in the driver (they depend only on the image byte
 (:class:`~.in_process.InProcessExecutor`) or dask (:class:`~.dask_cluster.DaskExecutor`), chosen by
 :func:`cluster_mode` — runs each task through :func:`~.node.execute`, which loads its inputs from the
 store, runs the stage, writes the artifact and hands back only a small :class:`~.base.TaskResult`. A
-failing image records its error and its downstream tasks are skipped; the other images carry on.
+failing image records its error and its downstream tasks are skipped; the other images carry on. A
+task that failed on its input before (a junk file, a blank page: :meth:`~pipeline.engine.store.ArtifactStore.failure`)
+is that failure again, found like a hit: nothing runs for its image.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pipeline.engine.execute.in_process import SYNC_THREADS, InProcessExecutor
 from pipeline.engine.kernels import shipped as kernels
 from pipeline.engine.kernels import warmup
 from pipeline.engine.plan import Task, plan
-from pipeline.engine.registry import active_stages, check_stage
+from pipeline.engine.registry import BY_NAME, active_stages, check_stage
 from pipeline.engine.store import ArtifactStore
 
 
@@ -82,9 +84,19 @@ def run_batch(images: list[str | Path], cfg: Any, on_result: Callable[[TaskResul
             # A stored artifact is a hit even when an upstream one was evicted from the store.
             if store.exists(t.stage, t.key):
                 per[t.stage] = TaskResult(t.image, t.stage, t.key, "cached")
-                report(per[t.stage])
+            elif (up := next((i for i in BY_NAME[t.stage].inputs
+                              if i in per and per[i].status in ("failed", "skipped")), None)) is not None:
+                per[t.stage] = TaskResult(t.image, t.stage, t.key, "skipped", error=f"upstream {up} failed")
+            elif (all(per.get(i) is not None for i in BY_NAME[t.stage].inputs)
+                  and (failure := store.failure(t.stage, t.key)) is not None):
+                # failed on this very input and config before (store.save_failure): reported as a hit
+                # is, no process started or stage imported for it. Looked up only where every input is
+                # stored, as a failure needs them: a first run asks once per image, not once per task.
+                per[t.stage] = TaskResult(t.image, t.stage, t.key, "failed", error=failure["error"], stored=True)
             else:
                 todo_final.append(t)
+                continue
+            report(per[t.stage])
         if todo_final:
             pending.append(todo_final)
 

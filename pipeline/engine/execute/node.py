@@ -173,6 +173,7 @@ def execute(task: Task, store_url: str, *upstream: TaskResult, alone: bool = Fal
         return TaskResult(task.image, task.stage, task.key, "computed", duration_s=duration,
                           warnings=tuple(artifact.notes), items=items)
     except InputError as exc:
+        _record_failure(store, task, str(exc))
         return TaskResult(task.image, task.stage, task.key, "failed", error=str(exc),
                           duration_s=time.perf_counter() - t0)
     except MemoryError:
@@ -182,3 +183,17 @@ def execute(task: Task, store_url: str, *upstream: TaskResult, alone: bool = Fal
         return TaskResult(task.image, task.stage, task.key, "failed",
                           error=f"internal error in stage {task.stage}: {type(exc).__name__}: {exc}",
                           detail=traceback.format_exc(), duration_s=time.perf_counter() - t0)
+
+
+def _record_failure(store: ArtifactStore, task: Task, error: str) -> None:
+    """File an input's failure under the task's key (:meth:`ArtifactStore.save_failure`): the same file
+    and config fail the same way, so the next run reports it without running anything for the image.
+    Only :class:`InputError` is recorded: an internal error may be a bug fixed in place, and memory or a
+    lost worker may do better next time. A store that cannot take it costs the record, not the run."""
+    try:
+        store.save_failure(task.stage, task.key, {
+            "stage": task.stage, "version": task.version, "key": task.key, "config": task.config,
+            "inputs": task.inputs, "image": task.image_key, "image_name": Path(task.image).name,
+            "error": error, "written_at": time.time()})
+    except OSError:
+        pass
