@@ -47,6 +47,8 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+from stages.arrays import sorted_unique
+
 
 def adjacency(n: int, edges: np.ndarray) -> list[set]:
     """Neighbour sets of the ``n`` vertices of an undirected edge list."""
@@ -109,14 +111,14 @@ def merge_close_vertices(xy, root, member_vertex, member_curve, member_param, ed
         close = np.zeros((0, 2), np.int64)
     adj = adjacency(n, close)
     rep = np.full(n, -1, np.int64)
-    for v in np.argsort(-counts, kind="stable"):
+    for v in np.argsort(-counts, kind="stable").tolist():
         if rep[v] >= 0:
             continue
         rep[v] = v
         for u in adj[v]:
             if rep[u] < 0:
                 rep[u] = v
-    keep = np.unique(rep)
+    keep = sorted_unique(rep)
     new_id = np.full(n, -1, np.int64)
     new_id[keep] = np.arange(len(keep))
     return keep, new_id[rep[member_vertex]]

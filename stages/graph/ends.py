@@ -149,14 +149,17 @@ def join_singular_ends(xy, width, edges, flags, band, singular, max_distance, mi
     new_edges : numpy.ndarray
         (K, 2) the added edges (``edge_curve`` −1 in the artifact).
     """
-    from scipy.ndimage import distance_transform_edt
     from scipy.spatial import cKDTree
 
-    if singular.any():
-        dist = distance_transform_edt(~singular)
+    sing_px = np.argwhere(singular)
+    if len(sing_px):
+        # each vertex pixel's distance to the nearest singular pixel, by a tree of the few singular
+        # pixels rather than a distance transform of the whole image (whose cost and memory follow
+        # the page's area, not the ink); between integer pixel indices both are the same square root
         i = np.clip(np.floor(xy[:, 1]).astype(int), 0, band.shape[0] - 1)
         j = np.clip(np.floor(xy[:, 0]).astype(int), 0, band.shape[1] - 1)
-        near = (flags & 1).astype(bool) | (dist[i, j] <= width / 2 + 1)
+        dist = cKDTree(sing_px).query(np.stack([i, j], axis=1))[0] if len(xy) else np.zeros(0)
+        near = (flags & 1).astype(bool) | (dist <= width / 2 + 1)
     else:
         near = (flags & 1).astype(bool)
     n = len(xy)

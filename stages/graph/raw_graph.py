@@ -72,6 +72,22 @@ def member_order(member_curve: np.ndarray, member_param: np.ndarray) -> np.ndarr
     numpy.ndarray
         int64 permutation of the crossings.
     """
+    n = len(member_curve)
+    if n < 2:
+        return np.lexsort((member_param, member_curve))
+    # one float64 key (streamline · span + parameter, the parameters being < span) sorted once instead of
+    # lexsort's two stable passes: on a page's millions of crossings lexsort cost more than the ink grew
+    # (stages/DECISIONS.md, graph).  The key can round distinct neighbours together, and an unstable
+    # sort orders equal keys at will, so the order is checked to be lexsort's — the one permutation
+    # along which (streamline, parameter, index) strictly increases — and lexsort runs where it is not.
+    curve = np.asarray(member_curve)
+    param = np.asarray(member_param, np.float64)
+    span = np.floor(param.max()) + 1.0
+    order = np.argsort(curve * span + param)
+    c, p = curve[order], param[order]
+    dc, dp = c[1:] - c[:-1], p[1:] - p[:-1]
+    if np.all((dc > 0) | ((dc == 0) & ((dp > 0) | ((dp == 0) & (order[1:] > order[:-1]))))):
+        return order
     return np.lexsort((member_param, member_curve))
 
 

@@ -113,6 +113,37 @@ def edge_streamlines(known: np.ndarray, curve: np.ndarray, edges: np.ndarray) ->
     return out
 
 
+def stored_streamlines(lines: Streamlines, every: int) -> tuple[np.ndarray, np.ndarray]:
+    """The streamlines subsampled for storage: every ``every``-th sample of each curve and its last one.
+
+    The kept samples are indexed per curve, not picked by a mask over all samples: a mask took four
+    int64 temporaries a sample (1.1 GB on a 4x4 page), this takes one index a kept sample.
+
+    Parameters
+    ----------
+    lines : Streamlines
+        The traced curves (each curve's samples contiguous, curve after curve).
+    every : int
+        Keep every n-th sample (values < 1 count as 1).
+
+    Returns
+    -------
+    xy : numpy.ndarray
+        float32 (M, 2) the kept samples, curve after curve.
+    offsets : numpy.ndarray
+        int64 (C + 1,) ragged offsets of the curves into ``xy``.
+    """
+    every = max(1, int(every))
+    length = lines.length.astype(np.int64)
+    # samples 0, every, 2·every, … and the last one (once, when it is a multiple already)
+    per = np.where(length > 0, -(-(length - 1) // every) + 1, 0)
+    offsets = np.zeros(len(length) + 1, np.int64)
+    np.cumsum(per, out=offsets[1:])
+    rank = np.arange(offsets[-1]) - np.repeat(offsets[:-1], per)
+    take = np.repeat(lines.start.astype(np.int64), per) + np.minimum(rank * every, np.repeat(length - 1, per))
+    return np.ascontiguousarray(lines.xy[take], dtype=np.float32), offsets
+
+
 def _drop_small(xy, width, edges, min_area):
     alive = cleanup.remove_small_components(xy, width, edges, min_area)
     return edges[alive[edges[:, 0]]] if len(edges) else edges
@@ -245,12 +276,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     bounds = np.searchsorted(pv, np.arange(len(final) + 1))
     members, members_off = pcurve.astype(np.int32), bounds.astype(np.int64)
 
-    # streamlines, subsampled for storage (every n-th sample and the last one of each curve)
-    local = np.arange(len(lines.xy)) - lines.start[lines.curve]
-    take = (local % max(1, conf.store_every) == 0) | (local == lines.length[lines.curve] - 1)
-    s_xy = lines.xy[take].astype(np.float32)
-    s_off = np.zeros(len(lines.start) + 1, np.int64)
-    np.cumsum(np.bincount(lines.curve[take], minlength=len(lines.start)), out=s_off[1:])
+    s_xy, s_off = stored_streamlines(lines, conf.store_every)
 
     arrays = {
         "vertex_xy": xy[final].astype(np.float64),

@@ -1,0 +1,99 @@
+"""Tests of the graph stage's cost on a page: its memory and time follow the ink, not the page's area.
+
+A page holds many drawings (issue #54): arrays of the page's size, copies of the millions of
+streamline samples and sorts that grow faster than the ink are what these tests keep out.  The
+results themselves do not change (tests/stages/test_graph.py checks the graphs).
+"""
+
+from __future__ import annotations
+
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from stages import field, prep, synthetic
+from stages.graph.raw_graph import member_order
+from stages.graph.trace import Streamlines, trace_streamlines
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cfg(stage: str) -> dict:
+    return yaml.safe_load((ROOT / "conf" / stage / "default.yaml").read_text())
+
+
+def _lines() -> Streamlines:
+    d = synthetic.line()
+    p = prep.run(_cfg("prep"), image_bytes=d.png_bytes(), image_name="line")
+    f = field.run(_cfg("field"), prep=p)
+    tc = _cfg("graph")["trace"]
+    return trace_streamlines(np.asarray(f["c0"]), np.asarray(f["c2"]), np.asarray(p["mask"]).astype(bool),
+                             np.asarray(f["singular"]).astype(bool), np.asarray(f["roots"])[..., 0],
+                             step=tc["step"], max_half_samples=tc["max_half_samples"],
+                             merge_distance=tc["merge_distance"], merge_cos=tc["merge_cos"],
+                             self_merge_lag=tc["self_merge_lag"], tie=tc["tie"])
+
+
+def test_streamline_columns_are_contiguous():
+    """The cross-sections' kernel reads x, y and the tangent's columns without copying them."""
+    lines = _lines()
+    assert len(lines.xy) > 100
+    for a in (lines.xy, lines.tangent):
+        assert a.shape == (len(lines.curve), 2)
+        assert a[:, 0].flags.c_contiguous and a[:, 1].flags.c_contiguous
+
+
+def test_stored_streamlines_keep_every_nth_sample_and_the_last():
+    """Per-curve indices give what a mask over all samples gives, for any spacing and curve length."""
+    from stages.graph.stage import stored_streamlines
+
+    rng = np.random.default_rng(3)
+    length = rng.integers(1, 40, 300)
+    start = np.r_[0, np.cumsum(length)[:-1]]
+    curve = np.repeat(np.arange(300), length).astype(np.int32)
+    xy = rng.random((2, int(length.sum()))).astype(np.float32).T
+    lines = Streamlines(xy=xy, tangent=xy, curve=curve, start=start, length=length,
+                        end_reason=np.zeros((300, 2), np.int8))
+    for every in (0, 1, 2, 5, 7, 100):
+        local = np.arange(len(xy)) - start[curve]
+        take = (local % max(1, every) == 0) | (local == length[curve] - 1)
+        s_xy, s_off = stored_streamlines(lines, every)
+        np.testing.assert_array_equal(s_xy, xy[take])
+        np.testing.assert_array_equal(s_off, np.r_[0, np.cumsum(np.bincount(curve[take], minlength=300))])
+        assert s_xy.dtype == np.float32 and s_xy.flags.c_contiguous
+
+
+def test_member_order_is_lexsort_with_ties_and_rounded_keys():
+    """The one-key sort gives lexsort's order, also where keys tie or round together (its fallback)."""
+    rng = np.random.default_rng(5)
+    n = 20000
+    mc = rng.integers(0, 500, n)
+    mp = rng.integers(0, 60, n) + rng.random(n)
+    cases = [(mc, mp),
+             (mc, np.floor(mp)),                                    # many exact ties
+             (mc * 10**7, mp + rng.integers(0, 2, n) * 1e-9),       # distinct params, equal keys
+             (mc[:1], mp[:1]), (mc[:0], mp[:0])]
+    for c, p in cases:
+        np.testing.assert_array_equal(member_order(c, p), np.lexsort((p, c)))
+
+
+def test_singular_ends_need_no_image_sized_distance_transform():
+    """Which vertices are next to a singularity is found from the singular pixels, not from a distance
+    transform of the whole page (memory of the page's area: 8 bytes a pixel and more)."""
+    from stages.graph.ends import join_singular_ends
+
+    band = np.zeros((3000, 3000), bool)
+    band[100:110, 100:140] = True
+    singular = np.zeros_like(band)
+    singular[105, 120] = True
+    xy = np.array([[113.5, 105.5], [118.5, 105.5], [122.5, 105.5], [127.5, 105.5]])
+    width = np.full(4, 4.0)
+    edges = np.array([[0, 1], [2, 3]])
+    tracemalloc.start()
+    added = join_singular_ends(xy, width, edges, np.zeros(4, np.uint8), band, singular, 10.0, 20)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    np.testing.assert_array_equal(added, [[1, 2]])        # the two ends either side are joined
+    assert peak < 4 * band.size                            # the page's pixels at 8 bytes each: 72 MB
