@@ -6,7 +6,8 @@ The energy of :mod:`stages.field.stage` (see its docstring) leads to normal equa
 (:func:`_smart_laplacian`), the system split into a real part and a diagonal coupling
 (:func:`_assemble`) and applied to four real columns without forming the complex matrix
 (:func:`_field_operator`), solved by a hand-written Jacobi-preconditioned CG
-(:func:`_conjugate_gradient`, which says why not scipy's).  The extension stage solves its own
+(:func:`_conjugate_gradient`, which says why not scipy's) on each block of independent band
+components (:func:`_solve_blocks`, :func:`_blockwise_cg`).  The extension stage solves its own
 system with the same pieces; the field stage (:func:`stages.field.stage.compute_field`) runs the
 singularity loop around them.
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from stages.field.data_terms import smart_weights
@@ -73,6 +75,88 @@ def _region_index(region: np.ndarray) -> np.ndarray:
     index = np.full(region.shape, -1, dtype=np.int64)
     index[region] = np.arange(int(region.sum()))
     return index
+
+
+# Unknowns (pixels) per solve block.  A block's CG vectors and matrix (≈ 20 MB at 2¹⁶ pixels) stay in
+# the 32 MB L3 cache; one system for a whole 4×4 page (0.57 M pixels) streams them from memory and each
+# CG iteration costs 1.4× more per pixel (stages/DECISIONS.md, field, 2026-11-29).  Every one of the 14
+# drawings (bands ≤ 36 k pixels) is a single block, solved exactly as before.
+BLOCK_UNKNOWNS = 1 << 16
+
+
+def _solve_blocks(region: np.ndarray, unknowns: np.ndarray, limit: int | None = None) -> list[np.ndarray]:
+    """Independent blocks of a system on ``region``: its 4-connected components, grouped in label order.
+
+    The difference operator couples a pixel only to its 4-neighbours in the region (through the
+    pixel between them, for the central differences), so the components of the region are independent
+    blocks of the matrix.  A component starts a new block when the unknowns before it reach a multiple
+    of ``limit`` (a block then holds at most ``limit`` plus one component's unknowns).
+
+    Parameters
+    ----------
+    region : numpy.ndarray
+        bool (H, W), the pixels the operator spans.
+    unknowns : numpy.ndarray
+        bool (H, W), the pixels solved for (a subset of ``region``; numbered in raster order).
+    limit : int, optional
+        Unknowns per block; :data:`BLOCK_UNKNOWNS` by default.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Per block, the increasing positions of its pixels among the unknowns; one block (all of
+        them) when they number at most ``limit``.
+    """
+    limit = BLOCK_UNKNOWNS if limit is None else limit
+    n = int(unknowns.sum())
+    if n <= limit:
+        return [np.arange(n)]
+    labels, count = ndi.label(region)
+    label_of = labels[unknowns]
+    sizes = np.bincount(label_of, minlength=count + 1)
+    first = np.cumsum(sizes) - sizes  # unknowns before each component, in label order
+    block_of = np.unique(first // limit, return_inverse=True)[1].reshape(-1)[label_of]
+    order = np.argsort(block_of, kind="stable")
+    return [b for b in np.split(order, np.cumsum(np.bincount(block_of))[:-1]) if len(b)]
+
+
+def _submatrix(k: sp.csr_matrix, sel: np.ndarray, local: np.ndarray) -> sp.csr_matrix:
+    """Rows and columns ``sel`` of ``k`` for a block whose rows reach no column outside it.
+
+    ``local`` (length ``k.shape[0]``, scratch) gets the block's numbering.  Each row keeps the order of
+    its stored entries, so the block's products sum as the whole matrix's do.
+    """
+    local[sel] = np.arange(len(sel))
+    rows = k[sel]
+    return sp.csr_matrix((rows.data, local[rows.indices], rows.indptr), shape=(len(sel), len(sel)))
+
+
+def _blockwise_cg(k: sp.csr_matrix, off: np.ndarray | None, rhs: np.ndarray, x0: np.ndarray | None,
+                  blocks: list[np.ndarray], rtol: float, maxiter: int,
+                  compiled: bool = False) -> tuple[np.ndarray, list[int], bool]:
+    """:func:`_conjugate_gradient` on each block of a block-diagonal system (:func:`_solve_blocks`).
+
+    The operator is the field's (:func:`_field_operator` of ``k`` and the coupling ``off``), or ``k``
+    alone when ``off`` is None (the extension's).  Each block stops on its own residual (``rtol`` of
+    its right-hand side), so the work is the sum of the blocks' and each block's vectors stay in cache.
+
+    Returns
+    -------
+    x, iterations (per block), converged (all blocks)
+    """
+    local = np.empty(k.shape[0], np.int64) if len(blocks) > 1 else None
+    x = np.zeros_like(rhs)
+    iterations, converged = [], True
+    for sel in blocks:
+        # One block is the whole system: no copy of it (the same solve, bit for bit, as without blocks).
+        kb = k if local is None else _submatrix(k, sel, local)
+        apply = kb.__matmul__ if off is None else _field_operator(kb, off[sel], compiled=compiled)
+        xb, iters, ok = _conjugate_gradient(apply, kb.diagonal(), rhs[sel], None if x0 is None else x0[sel],
+                                            rtol, maxiter, compiled=compiled)
+        x[sel] = xb
+        iterations.append(iters)
+        converged &= ok
+    return x, iterations, converged
 
 
 def _rdot(a: np.ndarray, b: np.ndarray) -> float:
