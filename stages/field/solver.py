@@ -20,7 +20,6 @@ import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
 
-from stages.field.data_terms import smart_weights
 
 if TYPE_CHECKING:
     from stages.field import FieldConfig
@@ -60,15 +59,28 @@ def _difference_operator(region: np.ndarray, index: np.ndarray, axis: int) -> sp
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
 
 
-def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
-    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD)."""
-    sd = sp.diags(s[region])
+def _band_differences(region: np.ndarray, index: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """The difference operators along rows and columns (:func:`_difference_operator`, axes 0 and 1).
+
+    They depend on the region alone: the singularity loop builds them once and re-weights them on
+    every pass (:func:`_weighted_laplacian`).
+    """
+    return _difference_operator(region, index, 0), _difference_operator(region, index, 1)
+
+
+def _weighted_laplacian(differences, s_band: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` of prebuilt difference operators and per-pixel weights ``s``."""
+    sd = sp.diags(s_band)
     lap = None
-    for axis in (0, 1):
-        d = _difference_operator(region, index, axis)
+    for d in differences:
         term = (d.T @ sd @ d)
         lap = term if lap is None else lap + term
     return lap.tocsr()
+
+
+def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD); ``s`` (H, W)."""
+    return _weighted_laplacian(_band_differences(region, index), s[region])
 
 
 def _region_index(region: np.ndarray) -> np.ndarray:
@@ -221,13 +233,22 @@ def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray |
 # The system
 # ---------------------------------------------------------------------------------------------
 
-def _assemble(mask, index, tau_b, w_full, cfg: FieldConfig):
+def _assemble(differences, tau_b: np.ndarray, w_b: np.ndarray, s_b: np.ndarray, cfg: FieldConfig):
     """The system over ``X = [c0; c2]`` of the band pixels, split into its real and coupling parts.
 
     The Hermitian matrix is ``[[K, diag(o)], [diag(conj o), K]]`` with the *real* ``K = diag(w + α m)
     + β L`` shared by both coefficients and the diagonal coupling ``o = (w − α m) τ²``.  It is never
     formed: :func:`_field_operator` applies ``K`` to the four real columns ``Re/Im c0, Re/Im c2`` in
     one sparse product (a third of the memory traffic of the complex ``2n × 2n`` matrix).
+
+    Parameters
+    ----------
+    differences : tuple of scipy.sparse.csr_matrix
+        The band's difference operators (:func:`_band_differences`), the same on every pass.
+    tau_b, w_b, s_b : numpy.ndarray
+        Per band pixel: image tangent τ, coherence weight w and its smart weight s
+        (:func:`stages.field.data_terms.band_smart_weights`).
+    cfg : FieldConfig
 
     Returns
     -------
@@ -238,11 +259,10 @@ def _assemble(mask, index, tau_b, w_full, cfg: FieldConfig):
     rhs : numpy.ndarray
         float (n, 4), the right-hand side as ``Re/Im`` of ``[-(w + α m) τ⁴, -(w − α m) τ²]``.
     """
-    w_b = w_full[mask]
     m = (np.abs(tau_b) > 0).astype(np.float64)  # the orthogonal term applies where τ ≠ 0
     t2 = tau_b ** 2
     t4 = t2 ** 2
-    lap = _smart_laplacian(mask, index, smart_weights(w_full))
+    lap = _weighted_laplacian(differences, s_b)
     plus = w_b + cfg.alpha * m
     minus = w_b - cfg.alpha * m
     k = (sp.diags(plus) + cfg.beta * lap).tocsr()

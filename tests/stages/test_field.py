@@ -212,6 +212,14 @@ def test_cg_tolerance_matches_a_tight_solve():
     assert np.abs(loose["c0"] - tight["c0"]).max() < 1e-3
 
 
+def _system(mask, tau, w, cfg):
+    """The field's system (``_assemble``) of the image arrays of one pass of the loop."""
+    from stages.field import solver
+    from stages.field import stage as fs
+    differences = solver._band_differences(mask, solver._region_index(mask))
+    return fs._assemble(differences, tau[mask], w[mask], fs.smart_weights(w)[mask], cfg)
+
+
 def test_real_form_solve_equals_a_direct_complex_solve():
     """The CG runs on four real columns and never forms the complex matrix: it must solve it."""
     import scipy.sparse as sp
@@ -225,7 +233,7 @@ def test_real_form_solve_equals_a_direct_complex_solve():
     cfg = FieldConfig(**dict(CFG, cg_rtol=1e-12))
     tau, gmag = fs.image_tangents(d.grey, cfg.gradient_cutoff)
     w = fs.coherence_weights(tau, gmag)
-    k, off, rhs = fs._assemble(mask, fs._region_index(mask), tau[mask], w, cfg)
+    k, off, rhs = _system(mask, tau, w, cfg)
     a = sp.bmat([[k, sp.diags(off)], [sp.diags(off.conj()), k]], format="csc").astype(np.complex128)
     b = rhs.view(np.complex128)
     direct = spsolve(a, np.concatenate([b[:, 0], b[:, 1]]))
@@ -258,8 +266,7 @@ def test_compiled_solve_steps_give_the_numpy_solve_to_the_last_bit(monkeypatch):
         assert array.tobytes() == compiled.arrays[name].tobytes(), name
     # The operator alone, on columns that are not a solve's: bit for bit too.
     tau, gmag = fs.image_tangents(d.grey, 0.0)
-    k, off, _ = fs._assemble(mask, fs._region_index(mask), tau[mask], fs.coherence_weights(tau, gmag),
-                             field.FieldConfig(**CFG))
+    k, off, _ = _system(mask, tau, fs.coherence_weights(tau, gmag), field.FieldConfig(**CFG))
     x = np.random.default_rng(0).standard_normal((int(mask.sum()), 4))
     assert operator(k, off)(x).tobytes() == operator(k, off, compiled=True)(x).tobytes()
 
