@@ -27,7 +27,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.extension import ExtensionConfig
-from stages.field.solver import _as_real, _conjugate_gradient, _region_index, _smart_laplacian
+from stages.field.solver import _as_real, _blockwise_cg, _region_index, _smart_laplacian, _solve_blocks
 
 
 def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,
@@ -74,14 +74,14 @@ def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray
     # Both coefficients share the real operator: one solve over their four real columns.
     k = int(in_ring.sum())
     rhs = -(lrb @ band_vals)
-    x, iters, converged = _conjugate_gradient(lrr.__matmul__, lrr.diagonal(), rhs, None, cfg.cg_rtol,
-                                              cfg.cg_max_iterations)
+    x, iters, converged = _blockwise_cg(lrr, None, rhs, None, _solve_blocks(dil, ring), cfg.cg_rtol,
+                                        cfg.cg_max_iterations)
     dist = ndi.distance_transform_cdt(~mask, metric="taxicab").astype(np.float64)
     scale = cfg.scale * dist[ring]
     xc = x.view(np.complex128)
     c0_ext[ring] = xc[:, 0] * scale
     c2_ext[ring] = xc[:, 1] * scale
-    return c0_ext, c2_ext, {"extension_unknowns": 2 * k, "extension_cg_iterations": iters,
+    return c0_ext, c2_ext, {"extension_unknowns": 2 * k, "extension_cg_iterations": max(iters),
                             "extension_cg_converged": bool(converged)}
 
 

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "4"  # 2: the solve in real form; 3: the extension moved to its own stage, smart weights kept;
-#                    4: a mosaic's pieces (prep) get their tangents and coherence weights each on its own
+STAGE_VERSION = "5"  # 2: the solve in real form; 3: the extension moved to its own stage, smart weights kept;
+#                    4: a mosaic's pieces (prep) get their tangents and coherence weights each on its own;
+#                    5: solves by blocks of band components (a band over 2¹⁶ pixels moves within cg_rtol)
 
 __all__ = [
     "FieldConfig", "STAGE_VERSION", "run", "compute_field", "image_tangents", "coherence_weights",

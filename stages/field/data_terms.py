@@ -81,3 +81,48 @@ def smart_weights(w: np.ndarray) -> np.ndarray:
         s[1:-1, 1:-1] = 0.25 * (one_minus[:-2, 1:-1] + one_minus[2:, 1:-1]
                                 + one_minus[1:-1, :-2] + one_minus[1:-1, 2:])
     return s
+
+
+def band_ring(w: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 4-neighbours of the band pixels that :func:`band_smart_weights` reads.
+
+    The singularity loop changes ``w`` on band pixels only: the neighbours off the band keep their
+    weights, so they are read from the image once here and the loop works on band vectors.
+
+    Parameters
+    ----------
+    w : numpy.ndarray
+        float (H, W), the coherence weights before the loop.
+    mask : numpy.ndarray
+        bool (H, W), the narrow band.
+
+    Returns
+    -------
+    inner : numpy.ndarray
+        bool (n,), band pixels off the image border (the others have s = 1).
+    neighbour : numpy.ndarray
+        int (n_inner, 4), band position of the up, down, left and right neighbour, −1 off the band.
+    w_off : numpy.ndarray
+        float (n_inner, 4), their weights in ``w`` (read where ``neighbour`` is −1).
+    """
+    h, wd = mask.shape
+    pos = np.flatnonzero(mask)
+    i, j = np.divmod(pos, wd)
+    inner = (i > 0) & (i < h - 1) & (j > 0) & (j < wd - 1)
+    q = pos[inner][:, None] + np.array([-wd, wd, -1, 1])
+    k = np.minimum(np.searchsorted(pos, q), max(len(pos) - 1, 0))
+    neighbour = np.where(pos[k] == q, k, -1) if len(pos) else k
+    return inner, neighbour, w.reshape(-1)[q]
+
+
+def band_smart_weights(w_b: np.ndarray, ring: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """:func:`smart_weights` on the band pixels alone, for band weights ``w_b`` (the same bits).
+
+    ``ring`` is :func:`band_ring` of the image's weights, whose values off the band still hold.
+    """
+    inner, neighbour, w_off = ring
+    w_n = np.where(neighbour >= 0, w_b[neighbour], w_off)
+    one_minus = 1.0 - w_n
+    s = np.ones(len(w_b))
+    s[inner] = 0.25 * (one_minus[:, 0] + one_minus[:, 1] + one_minus[:, 2] + one_minus[:, 3])
+    return s

@@ -95,11 +95,52 @@ def singular_cells(roots: np.ndarray, mask: np.ndarray) -> np.ndarray:
         return out
     full = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
     ci, cj = np.nonzero(full)  # only cells inside the band are tested
-    r00, r01 = roots[ci, cj], roots[ci, cj + 1]
-    r11, r10 = roots[ci + 1, cj + 1], roots[ci + 1, cj]
+    odd = _odd_cells(roots[ci, cj], roots[ci, cj + 1], roots[ci + 1, cj + 1], roots[ci + 1, cj])
+    out[ci[odd], cj[odd]] = True
+    return out
+
+
+def _odd_cells(r00: np.ndarray, r01: np.ndarray, r11: np.ndarray, r10: np.ndarray) -> np.ndarray:
+    """The parity test of :func:`singular_cells` on cells given by their corners' roots (in walk order)."""
     parity = (root_matching(r00, r01).astype(np.int8) + root_matching(r01, r11)
               + root_matching(r11, r10) + root_matching(r10, r00)) % 2
-    out[ci[parity == 1], cj[parity == 1]] = True
+    return parity == 1
+
+
+def band_cells(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """The cells that :func:`singular_cells` tests, as band positions of their corners.
+
+    Returns
+    -------
+    numpy.ndarray
+        int (cells, 4): the band positions (``index``) of pixels ``[i, j], [i, j+1], [i+1, j+1],
+        [i+1, j]`` of each cell with all four in ``mask``, in raster order of the cells.
+    """
+    if mask.shape[0] < 2 or mask.shape[1] < 2:
+        return np.zeros((0, 4), np.int64)
+    full = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
+    ci, cj = np.nonzero(full)
+    return np.stack([index[ci, cj], index[ci, cj + 1], index[ci + 1, cj + 1], index[ci + 1, cj]], axis=1)
+
+
+def band_singular_pixels(roots_b: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """:func:`singular_pixels` of :func:`singular_cells` on the band alone.
+
+    Parameters
+    ----------
+    roots_b : numpy.ndarray
+        complex (n, 2), the roots of the band pixels.
+    cells : numpy.ndarray
+        int (cells, 4), :func:`band_cells`.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (n,): band pixels touching a singular cell (every corner of a tested cell is in the band).
+    """
+    out = np.zeros(len(roots_b), dtype=bool)
+    odd = _odd_cells(*(roots_b[cells[:, c]] for c in range(4)))
+    out[cells[odd].reshape(-1)] = True
     return out
 
 
@@ -114,24 +155,42 @@ def singular_pixels(cells: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _order_ties(roots: np.ndarray, mask: np.ndarray, tau: np.ndarray, gmag: np.ndarray,
+# Rows of the image per strip of the tie-break's smoothing: its temporaries stay a strip's, not a page's.
+TIE_STRIP_PIXELS = 1 << 18
+
+
+def _order_ties(roots_b: np.ndarray, mask: np.ndarray, tau: np.ndarray, gmag: np.ndarray,
                 tolerance: float, sigma: float) -> int:
-    """Order the roots of near-equal modulus by the smoothed image tangent (in place).
+    """Order the band's roots of near-equal modulus by the smoothed image tangent (in place).
 
     For an axis-aligned stroke the frame {x, y} fits the alignment and orthogonality terms exactly,
     and it is the *same* polynomial (c0 = −1, c2 = 0) for a horizontal and a vertical stroke: the
     moduli tie and "larger modulus" alone would put the normal first on one of them.  Where
     ``|v| ≥ (1 − tolerance)·|u|`` the root closer to the Gaussian-smoothed (σ = ``sigma``) structure
-    tensor orientation of the image goes first.  Returns the number of swapped pixels.
+    tensor orientation of the image goes first.  ``roots_b`` (n, 2) are the roots of the band pixels
+    (``mask``) in raster order.  The smoothing runs on strips of rows holding ties, each with the
+    filter's reach above and below (the same values as on the whole image).  Returns the number of
+    swapped pixels.
     """
-    t2g = (tau * gmag) ** 2
-    orient = ndi.gaussian_filter(t2g.real, sigma) + 1j * ndi.gaussian_filter(t2g.imag, sigma)
-    m = np.abs(roots)
-    tie = mask & (m[..., 1] >= (1.0 - tolerance) * m[..., 0]) & (m[..., 0] > 0) & (np.abs(orient) > 0)
-    r = roots[tie]
-    t = np.sqrt(orient[tie])  # a direction whose doubled angle is the orientation's
+    m = np.abs(roots_b)
+    tie = (m[:, 1] >= (1.0 - tolerance) * m[:, 0]) & (m[:, 0] > 0)
+    h, w = mask.shape
+    rows, cols = np.divmod(np.flatnonzero(mask)[tie], w)
+    orient = np.zeros(len(rows), np.complex128)
+    reach = int(4.0 * sigma + 0.5)  # gaussian_filter's truncate = 4
+    height = max(1, TIE_STRIP_PIXELS // max(w, 1))
+    strip = rows // height
+    for k in np.unique(strip):
+        top, bottom = k * height, min(h, (k + 1) * height)
+        lo, hi = max(0, top - reach), min(h, bottom + reach)
+        t2g = (tau[lo:hi] * gmag[lo:hi]) ** 2
+        smooth = ndi.gaussian_filter(t2g.real, sigma) + 1j * ndi.gaussian_filter(t2g.imag, sigma)
+        here = strip == k
+        orient[here] = smooth[rows[here] - lo, cols[here]]
+    kept = np.abs(orient) > 0
+    sel = np.flatnonzero(tie)[kept]
+    r = roots_b[sel]
+    t = np.sqrt(orient[kept])  # a direction whose doubled angle is the orientation's
     swap = _abs_cos(r[:, 1], t) > _abs_cos(r[:, 0], t)
-    idx = np.nonzero(tie)
-    ii, jj = idx[0][swap], idx[1][swap]
-    roots[ii, jj] = roots[ii, jj][:, ::-1]
+    roots_b[sel[swap]] = r[swap][:, ::-1]
     return int(swap.sum())

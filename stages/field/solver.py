@@ -6,7 +6,8 @@ The energy of :mod:`stages.field.stage` (see its docstring) leads to normal equa
 (:func:`_smart_laplacian`), the system split into a real part and a diagonal coupling
 (:func:`_assemble`) and applied to four real columns without forming the complex matrix
 (:func:`_field_operator`), solved by a hand-written Jacobi-preconditioned CG
-(:func:`_conjugate_gradient`, which says why not scipy's).  The extension stage solves its own
+(:func:`_conjugate_gradient`, which says why not scipy's) on each block of independent band
+components (:func:`_solve_blocks`, :func:`_blockwise_cg`).  The extension stage solves its own
 system with the same pieces; the field stage (:func:`stages.field.stage.compute_field`) runs the
 singularity loop around them.
 """
@@ -16,9 +17,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.ndimage as ndi
 import scipy.sparse as sp
 
-from stages.field.data_terms import smart_weights
 
 if TYPE_CHECKING:
     from stages.field import FieldConfig
@@ -58,21 +59,116 @@ def _difference_operator(region: np.ndarray, index: np.ndarray, axis: int) -> sp
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
 
 
-def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
-    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD)."""
-    sd = sp.diags(s[region])
+def _band_differences(region: np.ndarray, index: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """The difference operators along rows and columns (:func:`_difference_operator`, axes 0 and 1).
+
+    They depend on the region alone: the singularity loop builds them once and re-weights them on
+    every pass (:func:`_weighted_laplacian`).
+    """
+    return _difference_operator(region, index, 0), _difference_operator(region, index, 1)
+
+
+def _weighted_laplacian(differences, s_band: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` of prebuilt difference operators and per-pixel weights ``s``."""
+    sd = sp.diags(s_band)
     lap = None
-    for axis in (0, 1):
-        d = _difference_operator(region, index, axis)
+    for d in differences:
         term = (d.T @ sd @ d)
         lap = term if lap is None else lap + term
     return lap.tocsr()
+
+
+def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD); ``s`` (H, W)."""
+    return _weighted_laplacian(_band_differences(region, index), s[region])
 
 
 def _region_index(region: np.ndarray) -> np.ndarray:
     index = np.full(region.shape, -1, dtype=np.int64)
     index[region] = np.arange(int(region.sum()))
     return index
+
+
+# Unknowns (pixels) per solve block.  A block's CG vectors and matrix (≈ 20 MB at 2¹⁶ pixels) stay in
+# the 32 MB L3 cache; one system for a whole 4×4 page (0.57 M pixels) streams them from memory and each
+# CG iteration costs 1.4× more per pixel (stages/DECISIONS.md, field, 2026-11-29).  Every one of the 14
+# drawings (bands ≤ 36 k pixels) is a single block, solved exactly as before.
+BLOCK_UNKNOWNS = 1 << 16
+
+
+def _solve_blocks(region: np.ndarray, unknowns: np.ndarray, limit: int | None = None) -> list[np.ndarray]:
+    """Independent blocks of a system on ``region``: its 4-connected components, grouped in label order.
+
+    The difference operator couples a pixel only to its 4-neighbours in the region (through the
+    pixel between them, for the central differences), so the components of the region are independent
+    blocks of the matrix.  A component starts a new block when the unknowns before it reach a multiple
+    of ``limit`` (a block then holds at most ``limit`` plus one component's unknowns).
+
+    Parameters
+    ----------
+    region : numpy.ndarray
+        bool (H, W), the pixels the operator spans.
+    unknowns : numpy.ndarray
+        bool (H, W), the pixels solved for (a subset of ``region``; numbered in raster order).
+    limit : int, optional
+        Unknowns per block; :data:`BLOCK_UNKNOWNS` by default.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Per block, the increasing positions of its pixels among the unknowns; one block (all of
+        them) when they number at most ``limit``.
+    """
+    limit = BLOCK_UNKNOWNS if limit is None else limit
+    n = int(unknowns.sum())
+    if n <= limit:
+        return [np.arange(n)]
+    labels, count = ndi.label(region)
+    label_of = labels[unknowns]
+    sizes = np.bincount(label_of, minlength=count + 1)
+    first = np.cumsum(sizes) - sizes  # unknowns before each component, in label order
+    block_of = np.unique(first // limit, return_inverse=True)[1].reshape(-1)[label_of]
+    order = np.argsort(block_of, kind="stable")
+    return [b for b in np.split(order, np.cumsum(np.bincount(block_of))[:-1]) if len(b)]
+
+
+def _submatrix(k: sp.csr_matrix, sel: np.ndarray, local: np.ndarray) -> sp.csr_matrix:
+    """Rows and columns ``sel`` of ``k`` for a block whose rows reach no column outside it.
+
+    ``local`` (length ``k.shape[0]``, scratch) gets the block's numbering.  Each row keeps the order of
+    its stored entries, so the block's products sum as the whole matrix's do.
+    """
+    local[sel] = np.arange(len(sel))
+    rows = k[sel]
+    return sp.csr_matrix((rows.data, local[rows.indices], rows.indptr), shape=(len(sel), len(sel)))
+
+
+def _blockwise_cg(k: sp.csr_matrix, off: np.ndarray | None, rhs: np.ndarray, x0: np.ndarray | None,
+                  blocks: list[np.ndarray], rtol: float, maxiter: int,
+                  compiled: bool = False) -> tuple[np.ndarray, list[int], bool]:
+    """:func:`_conjugate_gradient` on each block of a block-diagonal system (:func:`_solve_blocks`).
+
+    The operator is the field's (:func:`_field_operator` of ``k`` and the coupling ``off``), or ``k``
+    alone when ``off`` is None (the extension's).  Each block stops on its own residual (``rtol`` of
+    its right-hand side), so the work is the sum of the blocks' and each block's vectors stay in cache.
+
+    Returns
+    -------
+    x, iterations (per block), converged (all blocks)
+    """
+    local = np.empty(k.shape[0], np.int64) if len(blocks) > 1 else None
+    x = np.zeros_like(rhs)
+    iterations, converged = [], True
+    for sel in blocks:
+        # One block is the whole system: no copy of it (the same solve, bit for bit, as without blocks).
+        kb = k if local is None else _submatrix(k, sel, local)
+        apply = kb.__matmul__ if off is None else _field_operator(kb, off[sel], compiled=compiled)
+        xb, iters, ok = _conjugate_gradient(apply, kb.diagonal(), rhs[sel], None if x0 is None else x0[sel],
+                                            rtol, maxiter, compiled=compiled)
+        x[sel] = xb
+        iterations.append(iters)
+        converged &= ok
+    return x, iterations, converged
 
 
 def _rdot(a: np.ndarray, b: np.ndarray) -> float:
@@ -137,13 +233,22 @@ def _conjugate_gradient(apply, diag: np.ndarray, b: np.ndarray, x0: np.ndarray |
 # The system
 # ---------------------------------------------------------------------------------------------
 
-def _assemble(mask, index, tau_b, w_full, cfg: FieldConfig):
+def _assemble(differences, tau_b: np.ndarray, w_b: np.ndarray, s_b: np.ndarray, cfg: FieldConfig):
     """The system over ``X = [c0; c2]`` of the band pixels, split into its real and coupling parts.
 
     The Hermitian matrix is ``[[K, diag(o)], [diag(conj o), K]]`` with the *real* ``K = diag(w + α m)
     + β L`` shared by both coefficients and the diagonal coupling ``o = (w − α m) τ²``.  It is never
     formed: :func:`_field_operator` applies ``K`` to the four real columns ``Re/Im c0, Re/Im c2`` in
     one sparse product (a third of the memory traffic of the complex ``2n × 2n`` matrix).
+
+    Parameters
+    ----------
+    differences : tuple of scipy.sparse.csr_matrix
+        The band's difference operators (:func:`_band_differences`), the same on every pass.
+    tau_b, w_b, s_b : numpy.ndarray
+        Per band pixel: image tangent τ, coherence weight w and its smart weight s
+        (:func:`stages.field.data_terms.band_smart_weights`).
+    cfg : FieldConfig
 
     Returns
     -------
@@ -154,11 +259,10 @@ def _assemble(mask, index, tau_b, w_full, cfg: FieldConfig):
     rhs : numpy.ndarray
         float (n, 4), the right-hand side as ``Re/Im`` of ``[-(w + α m) τ⁴, -(w − α m) τ²]``.
     """
-    w_b = w_full[mask]
     m = (np.abs(tau_b) > 0).astype(np.float64)  # the orthogonal term applies where τ ≠ 0
     t2 = tau_b ** 2
     t4 = t2 ** 2
-    lap = _smart_laplacian(mask, index, smart_weights(w_full))
+    lap = _weighted_laplacian(differences, s_b)
     plus = w_b + cfg.alpha * m
     minus = w_b - cfg.alpha * m
     k = (sp.diags(plus) + cfg.beta * lap).tocsr()

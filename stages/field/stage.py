@@ -59,10 +59,13 @@ Choices made on purpose (vs. the references; measurements in stages/DECISIONS.md
   compromise between the arms' {stroke, normal} frames.  A smaller α fits X junctions better but
   leaves many more singular pixels on scans.
 * **Tie-break of equal moduli** by the smoothed image tangent (step 5).
-* **One system for all components** instead of B19's per-component solves: the matrix is block
-  diagonal, so the solution is the same up to the CG stopping rule, and one solve avoids a Python loop
-  over hundreds of tiny components in a scan.  The singularity loop is therefore global: it stops
-  when the *total* count stops falling.
+* **Solves by blocks of components** (:func:`stages.field.solver._solve_blocks`): the matrix is block
+  diagonal over the band's components, grouped into blocks of up to 2¹⁶ unknowns (a drawing is
+  usually one), each solved by its own CG — not B19's per-component solves (a Python loop over
+  hundreds of tiny components in a scan) nor one system for a whole page.  Jacobi-CG by blocks, not
+  algebraic multigrid: the iteration count is bounded by the data term (the same 134/77/60/47 on one
+  drawing and on its 4×4 page); what grew was each iteration's cost once a page's vectors left the
+  cache.  The singularity loop stays global: it stops when the *total* count stops falling.
 * **A mosaic's pieces** (far-apart parts that prep laid side by side) get steps 1–2 on their own
   windows: the cutoff's and the coherence's maxima are then each part's, as on it cropped alone
   (the parts' band pixels are one system all the same).
@@ -95,9 +98,9 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.field import FieldConfig
-from stages.field.data_terms import coherence_weights, image_tangents, smart_weights
-from stages.field.roots import _order_ties, polyvector_roots, singular_cells, singular_pixels
-from stages.field.solver import _assemble, _conjugate_gradient, _field_operator, _region_index
+from stages.field.data_terms import band_ring, band_smart_weights, coherence_weights, image_tangents, smart_weights
+from stages.field.roots import _order_ties, band_cells, band_singular_pixels, polyvector_roots
+from stages.field.solver import _assemble, _band_differences, _blockwise_cg, _region_index, _solve_blocks
 from stages.prep import piece_windows
 
 
@@ -127,6 +130,37 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
         ``c0, c2, roots`` (complex128), ``singular`` (bool), ``smart_weights`` (float64) arrays and
         ``stats`` (dict).
     """
+    band = _band_field(grey, mask, cfg, windows)
+    out = _on_image(band, mask, np.complex128)
+    out["smart_weights"], out["stats"] = band["smart_weights"], band["stats"]
+    return out
+
+
+def _on_image(band: dict, mask: np.ndarray, dtype) -> dict:
+    """The band values of :func:`_band_field` as (H, W) images of ``dtype``, 0 off the band."""
+    h, w = mask.shape
+    out = {"c0": np.zeros((h, w), dtype), "c2": np.zeros((h, w), dtype), "roots": np.zeros((h, w, 2), dtype),
+           "singular": np.zeros((h, w), bool)}
+    for key in out:
+        out[key][mask] = band[key]
+    return out
+
+
+def _band_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
+                windows: list[tuple[slice, slice]] | None) -> dict:
+    """:func:`compute_field` with its per-pixel results as band vectors (raster order of ``mask``).
+
+    Only the data terms (steps 1, 2, 6) and the tie-break's smoothing see the whole image; the
+    singularity loop keeps band vectors and builds what does not change across its passes (the
+    difference operators, the tested cells, the neighbours off the band) once: image-sized arrays
+    per pass fall out of the cache on a page and cost memory.
+
+    Returns
+    -------
+    dict
+        ``c0, c2`` complex (n,), ``roots`` complex (n, 2), ``singular`` bool (n,), ``smart_weights``
+        float64 (H, W) and ``stats``.
+    """
     t_start = time.perf_counter()
     h, w = mask.shape
     if windows is None:
@@ -137,33 +171,32 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
         for win in windows:
             tau[win], gmag[win] = image_tangents(grey[win], cfg.gradient_cutoff)
             w0[win] = coherence_weights(tau[win], gmag[win])
-    index = _region_index(mask)
     n = int(mask.sum())
     tau_b = tau[mask]
-    stats: dict = {"unknowns": 2 * n, "band_pixels": n, "cg_iterations": [], "cg_converged": [],
-                   "singular_pixels": [], "nonzeros": [], "tie_swapped": 0}
-    c0 = np.zeros((h, w), np.complex128)
-    c2 = np.zeros((h, w), np.complex128)
-    roots = np.zeros((h, w, 2), np.complex128)
-    singular = np.zeros((h, w), bool)
+    blocks = _solve_blocks(mask, mask)
+    stats: dict = {"unknowns": 2 * n, "band_pixels": n, "solve_blocks": len(blocks), "cg_iterations": [],
+                   "cg_converged": [], "singular_pixels": [], "nonzeros": [], "tie_swapped": 0}
+    x = np.zeros((n, 4))
+    singular = np.zeros(n, bool)
     if n > 0:
-        w_cur = w0.copy()
+        index = _region_index(mask)
+        differences = _band_differences(mask, index)
+        cells = band_cells(mask, index)
+        del index
+        ring = band_ring(w0, mask)
+        w_cur = w0[mask]
         x = None
         best = None
         maxiter = max(1, cfg.cg_max_iterations)
-        # The loop keeps band values only (the best solve's x and singular pixels): full-image copies
-        # per re-solve cost 0.4 GB and 7 s on a 6 Mpx scan.  `roots` off the band stays 0 throughout.
         for _ in range(max(1, cfg.max_singularity_iterations)):
-            k, off, rhs = _assemble(mask, index, tau_b, w_cur, cfg)
+            k, off, rhs = _assemble(differences, tau_b, w_cur, band_smart_weights(w_cur, ring), cfg)
             x0 = x if (cfg.warm_start and x is not None) else None
-            x, iters, info = _conjugate_gradient(_field_operator(k, off, compiled=True), k.diagonal(), rhs, x0,
-                                                 cfg.cg_rtol, maxiter, compiled=True)
-            stats["cg_iterations"].append(iters)
+            x, iters, info = _blockwise_cg(k, off, rhs, x0, blocks, cfg.cg_rtol, maxiter, compiled=True)
+            stats["cg_iterations"].append(max(iters))
             stats["cg_converged"].append(info)
             stats["nonzeros"].append(2 * int(k.nnz) + 2 * n)  # of the complex 2n × 2n matrix
             xc = x.view(np.complex128)
-            roots[mask] = polyvector_roots(xc[:, 0], xc[:, 1])
-            singular = singular_pixels(singular_cells(roots, mask), (h, w))
+            singular = band_singular_pixels(polyvector_roots(xc[:, 0], xc[:, 1]), cells)
             count = int(singular.sum())
             stats["singular_pixels"].append(count)
             if best is None or count < best[0]:
@@ -175,13 +208,13 @@ def compute_field(grey: np.ndarray, mask: np.ndarray, cfg: FieldConfig,
                 break
             w_cur[newly] = 0.0
         _, x, singular = best
-        xc = x.view(np.complex128)
-        c0[mask], c2[mask] = xc[:, 0], xc[:, 1]
-        roots[mask] = polyvector_roots(xc[:, 0], xc[:, 1])
+    xc = x.view(np.complex128)
+    roots = polyvector_roots(xc[:, 0], xc[:, 1])
+    if n > 0:
         stats["tie_swapped"] = _order_ties(roots, mask, tau, gmag, cfg.tie_tolerance, cfg.tie_sigma)
     stats["solve_seconds"] = time.perf_counter() - t_start
-    return {"c0": c0, "c2": c2, "roots": roots, "singular": singular, "smart_weights": smart_weights(w0),
-            "stats": stats}
+    return {"c0": xc[:, 0], "c2": xc[:, 1], "roots": roots, "singular": singular,
+            "smart_weights": smart_weights(w0), "stats": stats}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,12 +247,10 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         raise InputError(f"field: grey and mask must be equal-shaped 2-D arrays, got {grey.shape} and {mask.shape}")
     if not np.all(np.isfinite(grey)):
         raise InputError("field: grey image contains NaN or infinite values")
-    out = compute_field(grey.astype(np.float64), mask.astype(bool), conf, piece_windows(prep.data, grey.shape))
-    arrays = {
-        "c0": out["c0"].astype(np.complex64), "c2": out["c2"].astype(np.complex64),
-        "roots": out["roots"].astype(np.complex64), "singular": out["singular"],
-        "smart_weights": out["smart_weights"].astype(np.float32),
-    }
+    mask = mask.astype(bool)
+    out = _band_field(grey.astype(np.float64), mask, conf, piece_windows(prep.data, grey.shape))
+    # Straight into the stored dtypes: no complex128 image of the roots (0.2 GB on a 4×4 page).
+    arrays = {**_on_image(out, mask, np.complex64), "smart_weights": out["smart_weights"].astype(np.float32)}
     notes = []
     capped = sum(not c for c in out["stats"]["cg_converged"])
     if capped:

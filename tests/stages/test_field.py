@@ -212,23 +212,32 @@ def test_cg_tolerance_matches_a_tight_solve():
     assert np.abs(loose["c0"] - tight["c0"]).max() < 1e-3
 
 
+def _system(mask, tau, w, cfg):
+    """The field's system (``_assemble``) of the image arrays of one pass of the loop."""
+    from stages.field import solver
+    from stages.field import stage as fs
+    differences = solver._band_differences(mask, solver._region_index(mask))
+    return fs._assemble(differences, tau[mask], w[mask], fs.smart_weights(w)[mask], cfg)
+
+
 def test_real_form_solve_equals_a_direct_complex_solve():
     """The CG runs on four real columns and never forms the complex matrix: it must solve it."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
     from stages.field import FieldConfig
+    from stages.field import solver
     from stages.field import stage as fs
     d = synthetic.example_drawing()
     mask = d.grey < THRESHOLD
     cfg = FieldConfig(**dict(CFG, cg_rtol=1e-12))
     tau, gmag = fs.image_tangents(d.grey, cfg.gradient_cutoff)
     w = fs.coherence_weights(tau, gmag)
-    k, off, rhs = fs._assemble(mask, fs._region_index(mask), tau[mask], w, cfg)
+    k, off, rhs = _system(mask, tau, w, cfg)
     a = sp.bmat([[k, sp.diags(off)], [sp.diags(off.conj()), k]], format="csc").astype(np.complex128)
     b = rhs.view(np.complex128)
     direct = spsolve(a, np.concatenate([b[:, 0], b[:, 1]]))
-    x, _, converged = fs._conjugate_gradient(fs._field_operator(k, off), k.diagonal(), rhs, None, 1e-12, 5000)
+    x, _, converged = solver._conjugate_gradient(solver._field_operator(k, off), k.diagonal(), rhs, None, 1e-12, 5000)
     xc = x.view(np.complex128)
     assert converged
     assert np.abs(np.concatenate([xc[:, 0], xc[:, 1]]) - direct).max() < 1e-8 * np.abs(direct).max()
@@ -241,14 +250,15 @@ def test_compiled_solve_steps_give_the_numpy_solve_to_the_last_bit(monkeypatch):
     """The field's CG runs its sparse product and updates as numba loops (stages/field/kernel.py): the
     same operations in the same order as numpy's and scipy's, so the same bits, solve after solve of the
     singularity loop (and the artifact's arrays byte for byte)."""
+    from stages.field import solver
     from stages.field import stage as fs
 
     d = synthetic.example_drawing()
     mask = d.grey < THRESHOLD
     compiled = _run(d.grey, mask)
-    operator, solve = fs._field_operator, fs._conjugate_gradient
-    monkeypatch.setattr(fs, "_field_operator", lambda k, off, compiled=False: operator(k, off))
-    monkeypatch.setattr(fs, "_conjugate_gradient", lambda *a, compiled=False: solve(*a))
+    operator, solve = solver._field_operator, solver._conjugate_gradient
+    monkeypatch.setattr(solver, "_field_operator", lambda k, off, compiled=False: operator(k, off))
+    monkeypatch.setattr(solver, "_conjugate_gradient", lambda *a, compiled=False: solve(*a))
     plain = _run(d.grey, mask)
     assert len(plain.data["cg_iterations"]) > 1          # several solves, warm-started
     assert plain.data["cg_iterations"] == compiled.data["cg_iterations"]
@@ -256,8 +266,7 @@ def test_compiled_solve_steps_give_the_numpy_solve_to_the_last_bit(monkeypatch):
         assert array.tobytes() == compiled.arrays[name].tobytes(), name
     # The operator alone, on columns that are not a solve's: bit for bit too.
     tau, gmag = fs.image_tangents(d.grey, 0.0)
-    k, off, _ = fs._assemble(mask, fs._region_index(mask), tau[mask], fs.coherence_weights(tau, gmag),
-                             field.FieldConfig(**CFG))
+    k, off, _ = _system(mask, tau, fs.coherence_weights(tau, gmag), field.FieldConfig(**CFG))
     x = np.random.default_rng(0).standard_normal((int(mask.sum()), 4))
     assert operator(k, off)(x).tobytes() == operator(k, off, compiled=True)(x).tobytes()
 
