@@ -196,3 +196,23 @@ def test_run_contract_and_bad_input():
         select.run(CFG, **inputs)
     with pytest.raises(InputError):
         select.run({k: v for k, v in CFG.items() if k != "valence"}, **_inputs([], [], [], {}))
+
+
+def test_independent_drawings_are_selected_as_each_alone(monkeypatch):
+    """A page of two independent drawings: each block is its own program, chosen as it is alone."""
+    one = ([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
+    two = ([((2, 3), ()), ((3, 4), ()), ((2, 4), ())], [range(0, 10), range(10, 20), range(0, 20)],
+           [10.0, 10.0, 15.0], {2: 1, 3: 5, 4: 1})
+    page = (one[0] + two[0], list(one[1]) + [range(100 + c.start, 100 + c.stop) for c in two[1]],
+            one[2] + two[2], {**one[3], **two[3]})
+    sizes = []
+    real = select_code.solve_mip
+    monkeypatch.setattr(select_code, "solve_mip", lambda problem, params: (sizes.append(len(problem.cost)),
+                                                                             real(problem, params))[1])
+    alone = [[c - 10 for c in _run(*d).data["chosen"]] for d in (one, two)]
+    sizes.clear()
+    art = _run(*page)
+    assert sizes == [2, 3]                      # one program per drawing, in order of their first path
+    assert art.data["chosen"] == [10 + c for c in alone[0]] + [12 + c for c in alone[1]]
+    assert art.data["status"] == "optimal"
+    assert art.data["objective"] == pytest.approx(sum(_run(*d).data["objective"] for d in (one, two)))
