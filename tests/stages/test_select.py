@@ -199,7 +199,8 @@ def test_run_contract_and_bad_input():
 
 
 def test_independent_drawings_are_selected_as_each_alone(monkeypatch):
-    """A page of two independent drawings: each block is its own program, chosen as it is alone."""
+    """A page of two independent drawings in programs of at most 3 paths: each drawing is its own program,
+    chosen as it is alone; with the default bound both are one program, the program of before."""
     one = ([((0, 1), ()), ((0, 1), ())], [range(0, 40), range(0, 40)], [50.0, 42.0], {0: 1, 1: 1})
     two = ([((2, 3), ()), ((3, 4), ()), ((2, 4), ())], [range(0, 10), range(10, 20), range(0, 20)],
            [10.0, 10.0, 15.0], {2: 1, 3: 5, 4: 1})
@@ -211,8 +212,13 @@ def test_independent_drawings_are_selected_as_each_alone(monkeypatch):
                                                                              real(problem, params))[1])
     alone = [[c - 10 for c in _run(*d).data["chosen"]] for d in (one, two)]
     sizes.clear()
+    together = _run(*page)
+    assert sizes == [5]                         # a few paths: one program, as before
+    monkeypatch.setattr(select_code, "PROGRAM_PATHS", 3)
+    sizes.clear()
     art = _run(*page)
     assert sizes == [2, 3]                      # one program per drawing, in order of their first path
+    assert art.data["chosen"] == together.data["chosen"]
     assert art.data["chosen"] == [10 + c for c in alone[0]] + [12 + c for c in alone[1]]
     assert art.data["status"] == "optimal"
     assert art.data["objective"] == pytest.approx(sum(_run(*d).data["objective"] for d in (one, two)))
