@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.graph.cross_section import _build_sections
+from stages.graph.trace import field_on_band
 
 
 @dataclass
@@ -137,7 +138,8 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
     Parameters
     ----------
     c0, c2, band, singular : numpy.ndarray
-        The field (complex (H, W), 0 off the band), the band and the singular pixels.
+        The field (complex (H, W); read as 0 off the band, :func:`stages.graph.trace.field_on_band`),
+        the band and the singular pixels.
     lines : stages.graph.trace.Streamlines
         The traced curves with their pixel lookup.
     step : float
@@ -165,8 +167,8 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
     RawGraph
     """
     band = np.ascontiguousarray(band, dtype=np.bool_)
-    c0 = np.ascontiguousarray(np.where(band, c0, 0), dtype=np.complex128)
-    c2 = np.ascontiguousarray(np.where(band, c2, 0), dtype=np.complex128)
+    c0 = field_on_band(c0, band)
+    c2 = field_on_band(c2, band)
     sx = np.ascontiguousarray(lines.xy[:, 0])
     sy = np.ascontiguousarray(lines.xy[:, 1])
     tx = np.ascontiguousarray(lines.tangent[:, 0])

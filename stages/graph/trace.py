@@ -200,10 +200,15 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
     c_end = np.empty((ccap, 2), np.int8)
     nc = np.int64(0)
     tmp = np.empty((0, 4), np.float32)
+    r = np.int64(0)
     for i in range(H):
         for j in range(W):
-            d0 = seed_dir[i, j]
-            if not band[i, j] or singular[i, j] or d0 == 0:
+            if not band[i, j]:
+                continue
+            # seed_dir holds the band pixels only, in this loop's (row-major) order
+            d0 = seed_dir[r]
+            r += 1
+            if singular[i, j] or d0 == 0:
                 continue
             x0 = j + 0.5
             y0 = i + 0.5
@@ -357,6 +362,37 @@ class Streamlines:
         """int64 (C + 1,) ragged offsets of the curves into ``xy``."""
         return np.concatenate([self.start, [len(self.xy)]]).astype(np.int64)
 
+def field_on_band(c: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """The coefficient image as the kernels read it: 0 off the band, complex64 or complex128, C order.
+
+    The kernels' bilinear reads reach a pixel beyond the band, where the field counts as 0.  The field
+    stage's arrays already are what the kernels need (complex64, 0 off the band), so they are read as
+    they are: a complex128 copy zeroed off the band cost 32 bytes a pixel for c0 and c2, in the trace
+    and again in the cross-sections.  The kernels widen each complex64 value to complex128 (exactly)
+    before any arithmetic, so the results are those of a complex128 copy.  Any other input is copied.
+
+    Parameters
+    ----------
+    c : numpy.ndarray
+        complex (H, W) c0 or c2.
+    band : numpy.ndarray
+        bool (H, W), C order, the narrow band.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``c`` itself, or a copy that is 0 off the band (complex64 stays complex64).
+    """
+    c = np.asarray(c)
+    if c.dtype != np.complex64:
+        c = np.asarray(c, dtype=np.complex128)
+    # checked in blocks of rows: a whole-image mask of the off-band values would be page-sized again
+    rows = 256
+    if c.flags.c_contiguous and not any(np.any(c[r:r + rows][~band[r:r + rows]]) for r in range(0, len(c), rows)):
+        return c
+    return np.ascontiguousarray(np.where(band, c, np.zeros((), c.dtype)))
+
+
 
 def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray,
                       seed_root: np.ndarray, *, step: float, max_half_samples: int, merge_distance: float,
@@ -366,13 +402,14 @@ def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular
     Parameters
     ----------
     c0, c2 : numpy.ndarray
-        complex (H, W) PolyVector coefficients, 0 off the band.
+        complex (H, W) PolyVector coefficients; read as 0 off the band (:func:`field_on_band`).
     band : numpy.ndarray
         bool (H, W), the narrow band.
     singular : numpy.ndarray
         bool (H, W) singular pixels; traces stop on them and no seed starts there.
     seed_root : numpy.ndarray
-        complex (H, W) the root each pixel seeds (the larger-modulus root); 0 = no seed.
+        complex (H, W) the root each pixel seeds (the larger-modulus root); 0 = no seed (read on the
+        band only).
     step : float
         Euler step h in px (reference 0.1).
     max_half_samples : int
@@ -390,14 +427,17 @@ def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular
     """
     band = np.ascontiguousarray(band, dtype=np.bool_)
     sing = np.ascontiguousarray(singular, dtype=np.bool_)
-    c0 = np.ascontiguousarray(np.where(band, c0, 0), dtype=np.complex128)
-    c2 = np.ascontiguousarray(np.where(band, c2, 0), dtype=np.complex128)
-    mod = np.abs(seed_root)
-    seed = np.where(band & (mod > 1e-12), seed_root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
-    del mod
+    c0 = field_on_band(c0, band)
+    c2 = field_on_band(c2, band)
+    # the seed directions of the band pixels alone (16 bytes a band pixel, not five page-sized
+    # temporaries); the same elementwise operations as on the whole image, so the same values
+    root = np.asarray(seed_root)[band]
+    mod = np.abs(root)
+    seed = np.where(mod > 1e-12, root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
+    del root, mod
     cap = max(1024, int(band.sum()) * 64)
     sx, sy, tx, ty, sc, cs, cl, ce = _trace_all(
-        c0, c2, band, sing, np.ascontiguousarray(seed), float(step), int(max_half_samples),
+        c0, c2, band, sing, seed, float(step), int(max_half_samples),
         float(merge_distance) ** 2, float(merge_cos), int(self_merge_lag), float(tie), cap)
     # (2, N) arrays seen as (N, 2): the columns are contiguous, so the cross-sections' kernel reads
     # them without copying (four copies were 16 bytes a sample, 0.55 GB on a 4x4 page)

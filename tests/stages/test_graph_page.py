@@ -97,3 +97,58 @@ def test_singular_ends_need_no_image_sized_distance_transform():
     tracemalloc.stop()
     np.testing.assert_array_equal(added, [[1, 2]])        # the two ends either side are joined
     assert peak < 4 * band.size                            # the page's pixels at 8 bytes each: 72 MB
+
+
+def _field_on_page(size: int = 3000):
+    """The line drawing's field and band, placed in a ``size`` × ``size`` page (complex64, 0 off the band,
+    as the field stage stores them)."""
+    d = synthetic.line()
+    p = prep.run(_cfg("prep"), image_bytes=d.png_bytes(), image_name="line")
+    f = field.run(_cfg("field"), prep=p)
+    small = {"band": np.asarray(p["mask"]).astype(bool), "singular": np.asarray(f["singular"]).astype(bool),
+             "c0": np.asarray(f["c0"]), "c2": np.asarray(f["c2"]), "seed": np.asarray(f["roots"])[..., 0]}
+    h, w = small["band"].shape
+    page = {}
+    for k, a in small.items():
+        page[k] = np.zeros((size, size), a.dtype)
+        page[k][100:100 + h, 200:200 + w] = a
+    return page
+
+
+def _trace_and_sections(page, c0, c2):
+    from stages.graph.raw_graph import build_cross_sections
+
+    tc, sc = _cfg("graph")["trace"], _cfg("graph")["sections"]
+    lines = trace_streamlines(c0, c2, page["band"], page["singular"], page["seed"], step=tc["step"],
+                              max_half_samples=tc["max_half_samples"], merge_distance=tc["merge_distance"],
+                              merge_cos=tc["merge_cos"], self_merge_lag=tc["self_merge_lag"], tie=tc["tie"])
+    raw = build_cross_sections(c0, c2, page["band"], page["singular"], lines, step=tc["step"],
+                               station_spacing=sc["station_spacing"], cover_factor=sc["cover_factor"],
+                               min_station_gap=sc["min_station_gap"], max_gap=sc["max_gap"],
+                               max_section_length=sc["max_section_length"], ambiguity=sc["ambiguity"],
+                               tie=tc["tie"], lane_pad=sc["lane_pad"])
+    return lines, raw
+
+
+def test_trace_and_sections_copy_no_page_sized_field():
+    """The field stage's complex64 images, 0 off the band, are read as they are: no complex128 copies of
+    c0 and c2 (32 bytes a pixel of the page), no page-sized seed directions, an int32 cell lookup.  The kernels widen each
+    value exactly, so the streamlines and cross-sections are those of complex128 copies, and of a field
+    that is not 0 off the band (copied, then read as 0 there)."""
+    page = _field_on_page()
+    tracemalloc.start()
+    lines, raw = _trace_and_sections(page, page["c0"], page["c2"])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert len(lines.xy) > 100 and len(raw.xy) > 10
+    # the kernels' int32 pixel lookups (the trace's ``head``, the cells' ``bidx``) are 4 bytes a pixel; the
+    # copies were 60 (540 MB here)
+    assert peak < 5 * page["band"].size
+    noisy = {k: np.where(page["band"], page[k], 1 + 2j).astype(np.complex128) for k in ("c0", "c2")}
+    for c0, c2 in ((page["c0"].astype(np.complex128), page["c2"].astype(np.complex128)),
+                   (noisy["c0"], noisy["c2"])):
+        lines2, raw2 = _trace_and_sections(page, c0, c2)
+        for a, b in ((lines.xy, lines2.xy), (lines.tangent, lines2.tangent), (lines.curve, lines2.curve),
+                     (raw.xy, raw2.xy), (raw.width, raw2.width), (raw.root, raw2.root), (raw.edges, raw2.edges),
+                     (raw.member_param, raw2.member_param)):
+            np.testing.assert_array_equal(a, b)
