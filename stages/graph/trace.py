@@ -381,16 +381,21 @@ def field_on_band(c: np.ndarray, band: np.ndarray) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        ``c`` itself, or a copy that is 0 off the band (complex64 stays complex64).
+        A read-only view of ``c``, or of a copy that is 0 off the band (complex64 stays complex64).
+        Read-only always: numba compiles a read-only array (the engine's memo hands the stage read-only
+        arrays) as another type than a writable one, so the shipped kernels cover one type, not two.
     """
     c = np.asarray(c)
     if c.dtype != np.complex64:
         c = np.asarray(c, dtype=np.complex128)
     # checked in blocks of rows: a whole-image mask of the off-band values would be page-sized again
     rows = 256
-    if c.flags.c_contiguous and not any(np.any(c[r:r + rows][~band[r:r + rows]]) for r in range(0, len(c), rows)):
-        return c
-    return np.ascontiguousarray(np.where(band, c, np.zeros((), c.dtype)))
+    if not (c.flags.c_contiguous and not any(np.any(c[r:r + rows][~band[r:r + rows]])
+                                             for r in range(0, len(c), rows))):
+        c = np.ascontiguousarray(np.where(band, c, np.zeros((), c.dtype)))
+    view = c.view()
+    view.flags.writeable = False
+    return view
 
 
 
