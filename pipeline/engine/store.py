@@ -290,18 +290,22 @@ class ArtifactStore:
         record : dict
             JSON-able; ``record["error"]`` is the one line the run printed.
         """
-        final = self._join(FAILURES, stage, key[:2], f"{key}.json")
-        text = json.dumps(record, default=_json_default)
         self.fs.makedirs(self._join(FAILURES, stage, key[:2]), exist_ok=True)
+        self._put_file(self._join(FAILURES, stage, key[:2], f"{key}.json"),
+                       json.dumps(record, default=_json_default).encode())
+
+    def _put_file(self, final: str, raw: bytes) -> None:
+        """Write one file whole or not at all: locally through ``.tmp`` and a rename; on an fsspec
+        back-end in one piece (they write an object at once; a torn pack fails its digests anyway)."""
         if not self.local:
-            with self.fs.open(final, "w") as f:
-                f.write(text)
+            with self.fs.open(final, "wb") as f:
+                f.write(raw)
             return
         self.fs.makedirs(self._join(".tmp"), exist_ok=True)
-        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.failure")
+        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.part")
         try:
-            with open(tmp, "w") as f:
-                f.write(text)
+            with open(tmp, "wb") as f:
+                f.write(raw)
             os.replace(tmp, final)
         finally:
             if os.path.exists(tmp):
@@ -346,24 +350,8 @@ class ArtifactStore:
         """
         if not items:
             return
-        raw = encode_pack(items)
-        folder = self._join(ITEMS, stage, scope)
-        final = self._join(ITEMS, stage, scope, f"{uuid.uuid4().hex}.pack")
-        self.fs.makedirs(folder, exist_ok=True)
-        if not self.local:
-            # fsspec back-ends write an object in one piece; a torn one fails the digests anyway.
-            with self.fs.open(final, "wb") as f:
-                f.write(raw)
-            return
-        self.fs.makedirs(self._join(".tmp"), exist_ok=True)
-        tmp = self._join(".tmp", f"{uuid.uuid4().hex}.pack")
-        try:
-            with open(tmp, "wb") as f:
-                f.write(raw)
-            os.replace(tmp, final)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        self.fs.makedirs(self._join(ITEMS, stage, scope), exist_ok=True)
+        self._put_file(self._join(ITEMS, stage, scope, f"{uuid.uuid4().hex}.pack"), encode_pack(items))
 
     def load_items(self, stage: str, scope: str, keys: list[str]) -> list[dict[str, np.ndarray] | None]:
         """The stored results of ``keys`` (None where missing or unreadable: computed again)."""
