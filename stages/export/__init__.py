@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "8"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "9"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
-#                     8: a gap closes between ends closer than the free radius (only each other near)
+#                     8: a gap closes between ends closer than the free radius (only each other near);
+#                     9: curves whose ends meet alone joined (export.meetings)
 
 
 @dataclass
@@ -80,6 +81,13 @@ class GapsConfig:
 
 
 @dataclass
+class MeetingsConfig:
+    """``export.meetings``: join the two curves whose ends meet alone (valence two) into one."""
+
+    enabled: bool
+
+
+@dataclass
 class ExportConfig:
     """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
@@ -96,6 +104,7 @@ class ExportConfig:
     overshoot: OvershootConfig
     corners: CornersConfig
     gaps: GapsConfig
+    meetings: MeetingsConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
@@ -110,7 +119,7 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.stage": ("run", "svg_document"),
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
     "stages.export.corners": ("join_at_corners", "join_linked"),
-    "stages.export.gaps": ("close_gaps",),
+    "stages.export.gaps": ("close_gaps", "join_lone_meetings"),
     "stages.export.joins": ("collapse_short_links", "join_continuations"),
     "stages.export.spurs": ("attach_spurs",),
     "stages.export.overshoots": ("extend_overshoots",),

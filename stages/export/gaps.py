@@ -58,26 +58,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     for n, p in enumerate(pts):
         grid.add(n, p)
     width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where, only = [], [], []
-    for n, p in enumerate(pts):
-        if len(p) < 2:
-            continue
-        near = max(FREE_PX, width[n])
-        for e in (0, 1):
-            q = p[0 if e == 0 else -1]
-            if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
-                continue                                   # a closed loop's end meets its own start
-            close = {o: np.asarray(idx)[_within(pts[o][idx], q, near)]
-                     for o, idx in grid.near(q, near).items() if o != n}
-            close = {o: idx for o, idx in close.items() if len(idx)}
-            partner = None
-            if close:
-                partner = _tip_owner(pts, close, TIP_RADII * near)
-                if partner is None:
-                    continue                               # at a junction, or beside another curve
-            ends.append((n, e))
-            where.append(q)
-            only.append(partner)
+    ends, where, only = _free_ends(pts, width, grid)
     if len(ends) < 2:
         return curves
     where = np.array(where)
@@ -120,3 +101,69 @@ def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, i
     if arc[-1] - arc[idx].min() <= reach:
         return o, 1
     return None
+
+
+def _free_ends(pts: list[np.ndarray], width: list[float], grid: "_PointGrid") -> tuple[list, list, list]:
+    """The free curve ends: ``(curve, end)``, its point, and the ``(curve, end)`` of the one other
+    curve's tip that is its only neighbour within max(FREE_PX, width) (None when it has none)."""
+    ends, where, only = [], [], []
+    for n, p in enumerate(pts):
+        if len(p) < 2:
+            continue
+        near = max(FREE_PX, width[n])
+        for e in (0, 1):
+            q = p[0 if e == 0 else -1]
+            if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
+                continue                                   # a closed loop's end meets its own start
+            close = {o: np.asarray(idx)[_within(pts[o][idx], q, near)]
+                     for o, idx in grid.near(q, near).items() if o != n}
+            close = {o: idx for o, idx in close.items() if len(idx)}
+            partner = None
+            if close:
+                partner = _tip_owner(pts, close, TIP_RADII * near)
+                if partner is None:
+                    continue                               # at a junction, or beside another curve
+            ends.append((n, e))
+            where.append(q)
+            only.append(partner)
+    return ends, where, only
+
+
+def join_lone_meetings(curves: list[dict]) -> list[dict]:
+    """Join the two curves whose ends meet alone (a meeting of valence two) into one curve.
+
+    Where exactly two curve ends meet — each the other's only neighbour within max(FREE_PX, w), no
+    third curve near — the drawing has one stroke going on there (turning, or at a junction keypoint
+    the selection found no third branch for), whatever the turn.  Drawn as two curves it lets the
+    stroke's later crossings and touches of itself read as junctions of two curves (the acceptance
+    scorer, like a person following the pen, counts none where one stroke meets itself); joined, they
+    are one curve.  Ends of one curve (a closed loop) are left.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`close_gaps`.
+
+    Returns
+    -------
+    list of dict
+        The curves after joining (as :func:`~stages.export.corners.join_linked`).
+    """
+    if len(curves) < 2:
+        return curves
+    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
+    grid = _PointGrid(FREE_PX)
+    for n, p in enumerate(pts):
+        grid.add(n, p)
+    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
+    ends, where, only = _free_ends(pts, width, grid)
+    partner, at = dict(zip(ends, only)), dict(zip(ends, where))
+    link: dict = {}
+    for a, b in partner.items():
+        if b is None or b[0] == a[0] or partner.get(b) != a or a in link or b in link:
+            continue
+        # each is the other's only neighbour; their ends themselves meet (not just one end and the
+        # other's last stretch of arc)
+        if np.hypot(*(at[a] - at[b])) <= max(FREE_PX, width[a[0]], width[b[0]]):
+            link[a], link[b] = b, a
+    return join_linked(curves, link, corner_joints=False) if link else curves

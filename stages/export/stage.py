@@ -66,6 +66,11 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   ``max(gaps.max_px, gaps.max_widths · w)`` apart, each pointing at the other within
   ``gaps.max_turn_deg``, are joined across the gap, nearest first (:func:`~stages.export.gaps.close_gaps`).
 
+* **Ends that meet alone** (``meetings``).  After everything else, two curve ends of different curves
+  that meet with nothing else near (each the other's only neighbour within max(2 px, w): valence two)
+  are one stroke going on, whatever the turn, and are joined (:func:`~stages.export.gaps.join_lone_meetings`);
+  a stroke crossing or touching itself later is then one curve meeting itself, not a junction.
+
 Duplicated pieces (two curves converging on one centre line near a false junction) are left alone:
 cutting them moves the false junction to where the curves part, which the ground truth rarely marks.
 """
@@ -82,7 +87,7 @@ from stages.errors import InputError
 from stages.export import ExportConfig
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
-from stages.export.gaps import close_gaps
+from stages.export.gaps import close_gaps, join_lone_meetings
 from stages.export.joins import collapse_short_links, join_continuations
 from stages.export.overshoots import extend_overshoots
 from stages.export.spurs import attach_spurs
@@ -222,6 +227,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px)
+    if tidy and params.meetings.enabled:
+        curves = join_lone_meetings(curves)
     if not internal_is_source(prep.data):
         # prep supersampled thin or downsampled wide strokes, or cropped the drawing out of its page:
         # every stage so far worked at internal x = scale · (source x − origin), the pixel corners

@@ -179,7 +179,7 @@ def test_run_joins_and_lists_the_parts():
     art = export.run(CFG, **inputs)
     assert len(art.data["curves"]) == 1 and art.data["curves"][0]["parts"] == [100, 101]
     assert art.data["svg"].count("<path") == 1
-    off = _cfg(join={**CFG["join"], "enabled": False})
+    off = _cfg(join={**CFG["join"], "enabled": False}, meetings={"enabled": False})   # two ends alone: joined by meetings too
     assert len(export.run(off, **inputs).data["curves"]) == 2
 
 
@@ -434,8 +434,8 @@ def test_a_link_shorter_than_the_stroke_width_between_two_corners_is_contracted(
     for p, c in zip(inputs["topology"].data["paths"], (a, b, link)):
         p["end_types"], p["end_keypoints"], p["widths"] = c["end_types"], c["end_keypoints"], [3.0] * len(c["points"])
     no_corners = {"enabled": False}     # keep the two arms apart, to count what the contraction did
-    assert len(export.run(_cfg(corners=no_corners), **inputs).data["curves"]) == 2
-    assert len(export.run(_cfg(corners=no_corners, collapse={**CFG["collapse"], "enabled": False}),
+    assert len(export.run(_cfg(corners=no_corners, meetings={"enabled": False}), **inputs).data["curves"]) == 2
+    assert len(export.run(_cfg(corners=no_corners, meetings={"enabled": False}, collapse={**CFG["collapse"], "enabled": False}),
                           **inputs).data["curves"]) == 3
     assert len(export.run(CFG, **inputs).data["curves"]) == 1     # and by default the vee is one stroke
 
@@ -601,7 +601,7 @@ def test_a_stroke_through_its_corners_is_one_curve_that_crosses_only_itself():
     for p, c in zip(inputs["topology"].data["paths"], pieces):
         p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
     assert len(export.run(CFG, **inputs).data["curves"]) == 1
-    assert len(export.run(_cfg(corners={"enabled": False}), **inputs).data["curves"]) == 3
+    assert len(export.run(_cfg(corners={"enabled": False}, meetings={"enabled": False}), **inputs).data["curves"]) == 3
 
 
 def test_corners_where_three_ends_meet_or_one_curve_closes_are_left():
