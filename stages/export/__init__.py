@@ -15,7 +15,8 @@ from stages.lazy import lazy_names
 STAGE_VERSION = "9"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
-#                     9: curves whose ends meet alone joined (export.meetings)
+#                     9: curves whose ends meet alone joined (export.meetings), passes of the pen
+#                        over one line merged into one curve (export.passes)
 
 
 @dataclass
@@ -81,6 +82,17 @@ class GapsConfig:
 
 
 @dataclass
+class PassesConfig:
+    """``export.passes``: curves that are passes of the pen over one line merged into one centred curve."""
+
+    enabled: bool
+    max_gap_widths: float
+    min_run_widths: float
+    max_angle_deg: float
+    end_slack_widths: float
+
+
+@dataclass
 class MeetingsConfig:
     """``export.meetings``: join the two curves whose ends meet alone (valence two) into one."""
 
@@ -104,6 +116,7 @@ class ExportConfig:
     overshoot: OvershootConfig
     corners: CornersConfig
     gaps: GapsConfig
+    passes: PassesConfig
     meetings: MeetingsConfig
 
     def __post_init__(self) -> None:
@@ -113,6 +126,9 @@ class ExportConfig:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
         if self.gaps.max_px < 0 or self.gaps.max_widths < 0 or not 0 <= self.gaps.max_turn_deg <= 90:
             raise InputError("export config: need gaps.max_px ≥ 0, gaps.max_widths ≥ 0, 0 ≤ gaps.max_turn_deg ≤ 90")
+        if self.passes.max_gap_widths < 0 or self.passes.min_run_widths < 0 or not 0 <= self.passes.max_angle_deg <= 90:
+            raise InputError("export config: need passes.max_gap_widths ≥ 0, passes.min_run_widths ≥ 0, "
+                             "0 ≤ passes.max_angle_deg ≤ 90")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
@@ -120,6 +136,7 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
     "stages.export.corners": ("join_at_corners", "join_linked"),
     "stages.export.gaps": ("close_gaps", "join_lone_meetings"),
+    "stages.export.passes": ("merge_passes",),
     "stages.export.joins": ("collapse_short_links", "join_continuations"),
     "stages.export.spurs": ("attach_spurs",),
     "stages.export.overshoots": ("extend_overshoots",),

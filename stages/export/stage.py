@@ -60,6 +60,11 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   Why: a stroke crossing itself is then one curve, not two curves crossing — a junction the
   drawing does not have (:func:`join_at_corners`).
 
+* **Passes of one line** (``passes``).  After the corner joins, a line drawn two or three times or
+  doubled back comes out as side-by-side curves (or one curve folded on itself) where a person sees
+  one line: pieces running near-parallel within ``passes.max_gap_widths`` widths over
+  ``passes.min_run_widths`` widths become one centred curve (:func:`~stages.export.passes.merge_passes`).
+
 * **Gaps in a stroke** (``gaps``).  Last of all, a faint or grainy stroke whose ink breaks comes out
   as curves end to end, each with two free ends where the drawing has one stroke.  Two free ends (no
   other curve within max(2 px, w), or only the other's tip) of different curves at most
@@ -90,6 +95,7 @@ from stages.export.corners import join_at_corners
 from stages.export.gaps import close_gaps, join_lone_meetings
 from stages.export.joins import collapse_short_links, join_continuations
 from stages.export.overshoots import extend_overshoots
+from stages.export.passes import merge_passes
 from stages.export.spurs import attach_spurs
 from stages.geometry import polyline_length
 from stages.prep import internal_is_source, internal_scale, to_source
@@ -224,6 +230,9 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                                    params.overshoot.max_widths, params.overshoot.clearance)
     if tidy and params.corners.enabled:
         curves = join_at_corners(curves)
+    if tidy and params.passes.enabled:
+        curves = merge_passes(curves, params.passes.max_gap_widths, params.passes.min_run_widths,
+                              params.passes.max_angle_deg, params.passes.end_slack_widths)
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px)
