@@ -71,7 +71,8 @@ def photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | None
     - the ground is solid (cells surviving an opening by :data:`SHEET_SOLID_CELLS`, 48 px: strokes and a
       scan's dark page edge are narrower) along at least ``crop.sheet_rim_share`` of the image's border
       (a sheet running off the photograph on two sides leaves about half of it);
-    - the paper is at least ``crop.sheet_min_contrast`` brighter than the ground (the percentiles above);
+    - the paper is at least ``crop.sheet_min_contrast`` brighter than the ground (the percentiles above,
+      and the solid ground's own median: strokes that cut the page in two leave paper on both sides);
     - its edge is a step (:data:`SHEET_MIN_STEP`), not the slope of uneven lighting;
     - at least :data:`SHEET_MIN_SOLID` of the sheet's cells are solid plain paper (bright cells whose grey
       varies by at most ``contrast.min_contrast``; an inverted drawing's strokes, hatching and grain form
@@ -123,6 +124,11 @@ def photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | None
     rim = np.concatenate([ground_cells[0], ground_cells[-1], ground_cells[:, 0], ground_cells[:, -1]])
     if rim.mean() < c.crop.sheet_rim_share:
         return None
+    # The ground itself is darker than the paper: strokes that cut the page in two leave paper on both
+    # sides, and the 5th percentile above was theirs (a doubled wave across a grey page was "a sheet").
+    ground_level = float(np.median(means[ground_cells]))
+    if paper - ground_level < c.crop.sheet_min_contrast:
+        return None
     # The sheet's edge is a step: across it, a cell of the sheet is much brighter than its neighbour
     # outside (uneven lighting's slope changes the grey by a hundredth from cell to cell).
     steps = []
@@ -142,7 +148,7 @@ def photographed_sheet(grey: np.ndarray, c: PrepConfig, focal_35mm: float | None
     if ndimage.binary_opening(plain, structure=solid).sum() < SHEET_MIN_SOLID * sheet.sum():
         return None
     if c.crop.sheet_flatten and (whole := _seen_whole(sheet, solid)) is not None:
-        found = sheet_corners(grey, whole, cell, 0.5 * (paper + np.median(means[ground_cells])))
+        found = sheet_corners(grey, whole, cell, 0.5 * (paper + ground_level))
         if found is not None:
             corners = found[0]
             flat, shape = flattened(grey, *found, SHEET_RIM_PX, focal_35mm)

@@ -64,3 +64,15 @@ def test_a_drawing_on_a_plain_page_is_no_photographed_sheet():
     shaded = page * np.linspace(1.0, 0.6, 600)[None, :]                      # lighting's slope, no step
     assert photographed_sheet(shaded, C) is None
     assert photographed_sheet(np.ones((100, 100)), C) is None                # too small to tell
+
+
+def test_strokes_that_cut_the_page_in_two_are_no_desk():
+    """A found bug: a doubled wave across a grey page split its paper into two regions; the smaller one
+    was taken for the desk (the 5th percentile of the cells, the strokes', was the 'ground'), and the
+    strokes were painted over as paper: "blank image"."""
+    img = Image.new("L", (512, 512), 222)
+    xs = np.linspace(0, 512, 400)
+    for dy in (0, 8):
+        pts = [(float(x), float(250 + 60 * np.sin(x / 40.0) + dy)) for x in xs]
+        ImageDraw.Draw(img).line(pts, fill=20, width=7)
+    assert photographed_sheet(np.asarray(img, np.float64) / 255.0, C) is None
