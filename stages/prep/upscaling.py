@@ -19,10 +19,13 @@ Choices made on purpose
   block edges, one period apart everywhere: the edges keep to a lattice (:func:`edge_lattice`,
   Rayleigh's statistic at least ``min_lattice``) of a period between ``min_period`` and
   ``max_period`` px, the same for the rows and the columns.  On validation drawings enlarged 2.5–4.25×
-  the statistic is 24–130, on every validation drawing at its own resolution (and aliased, and 3×
-  larger) below 7 (stages/DECISIONS.md).
+  the smaller axis's statistic is 24–123, on every drawing of the validation and busy splits at its own
+  resolution (and their aliased and 3× larger re-renderings) below 7 (stages/DECISIONS.md).
 * **Smoothed in place, not shrunk** to the low resolution and enlarged again: the period is found to a
   hundredth of a pixel, not its phase, and a Gaussian of ``blur`` × the period needs neither.
+  ``blur`` 0.5: on the enlarged validation drawings 0.35 left steps (more curves) and 0.7 merged
+  neighbouring strokes (lower endpoint F1; stages/DECISIONS.md).  The band is found again on the
+  smoothed grey before the stroke width is measured, so the resampling rules see the smooth stroke.
 """
 
 from __future__ import annotations
