@@ -34,9 +34,9 @@ SIZE = 512
 
 
 def main() -> int:
-    import conf
     from PIL import Image
 
+    import conf
     from pipeline.train import compose_plain
     from pipeline.validation_cases import render_case
 
@@ -59,7 +59,7 @@ def main() -> int:
     for i, d in enumerate(drawings):
         factor = a.factors[i % len(a.factors)]
         width = a.widths[(i // len(a.factors)) % len(a.widths)]
-        low = int(round(SIZE / factor))
+        low = round(SIZE / factor)
         f = SIZE / low                                    # the exact enlargement of this canvas
         for style in ("clean", "pencil"):
             gt = json.loads((a.cases / f"{d}_{style}.json").read_text())

@@ -34,7 +34,7 @@ def _enlarged(factor: float, width: float = 1.2, size: int = 600) -> tuple[np.nd
     """The strokes drawn ``width`` px wide (anti-aliased) at ``size / factor`` px, enlarged to ``size``²
     by area-weighted resampling (a pixel across a block edge blends two blocks), as 8-bit grey; and the
     exact enlargement."""
-    low = int(round(size / factor))
+    low = round(size / factor)
     grey = synthetic.render((low, low), _strokes(low), width, darkness=0.9)
     img = Image.fromarray((grey * 255).round().astype(np.uint8)).resize((size, size), Image.BOX)
     return np.asarray(img, np.float32) / 255, size / low
