@@ -3,7 +3,7 @@
 ``STAGE_VERSION`` and the config dataclasses. Its code is in :mod:`stages.prep.stage` (``run``: the
 order of the steps, and the docstring that describes it) and one module per step (``decode``,
 ``sheet``, ``sheet_flatten``, ``invert``, ``lighting``, ``crop``, ``specks``, ``layout``, ``contrast``,
-``band``, ``width``, ``supersampling``, ``downsampling``; shared helpers in ``pixels``), whose
+``band``, ``upscaling``, ``width``, ``supersampling``, ``downsampling``; shared helpers in ``pixels``), whose
 docstrings say what each step does and its choices; ``run`` and the other public names load from there
 when first used (:mod:`stages.lazy`).
 """
@@ -17,7 +17,7 @@ import numpy as np
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "14"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
+STAGE_VERSION = "15"  # 2: paper-white pixels repaired only as one-pixel pinholes; 3: sparse ink is not blank;
 #                     4: the band threshold stays clear of the paper grain; 5: thin strokes supersampled;
 #                     6: wide strokes downsampled; 7: on grainy paper the band is found on a smoothed grey;
 #                     8: an EXIF orientation is applied (the drawing upright, as viewers show it), uneven
@@ -28,7 +28,8 @@ STAGE_VERSION = "14"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        not widen the crop; 12: parts far apart on a page are laid side by side (a mosaic),
 #                        a photographed sheet is cut out of the darker background round it; 13: it is
 #                        found before the inversion, turned or running off the photo, its box's desk painted;
-#                     14: a photographed sheet seen whole is flattened to its rectangle (prep.crop.sheet_flatten)
+#                     14: a photographed sheet seen whole is flattened to its rectangle (prep.crop.sheet_flatten);
+#                     15: a drawing enlarged from a low resolution is smoothed at its block period (prep.deblock)
 
 
 @dataclass
@@ -71,6 +72,21 @@ class SupersampleConfig:
                 or self.max_factor < 1 or self.max_pixels < 1 or self.blur < 0:
             raise InputError("prep.supersample: need below_width ≥ 0, 0 ≤ max_soft_edges ≤ 1, target_width > 0, "
                              "max_factor ≥ 1, max_pixels ≥ 1, blur ≥ 0")
+
+
+@dataclass
+class DeblockConfig:
+    """``prep.deblock``: a drawing enlarged from a low resolution is smoothed at its block period."""
+
+    enabled: bool
+    min_lattice: float
+    min_period: float
+    max_period: float
+    blur: float
+
+    def __post_init__(self) -> None:
+        if self.min_lattice < 0 or not 1 < self.min_period <= self.max_period or self.blur < 0:
+            raise InputError("prep.deblock: need min_lattice ≥ 0, 1 < min_period ≤ max_period and blur ≥ 0")
 
 
 @dataclass
@@ -130,6 +146,7 @@ class PrepConfig:
     invert: str
     lighting: LightingConfig
     contrast: ContrastConfig
+    deblock: DeblockConfig
     supersample: SupersampleConfig
     downsample: DownsampleConfig
     crop: CropConfig
@@ -231,6 +248,7 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.prep.lighting": ("flatten_lighting",),
     "stages.prep.contrast": ("normalise_contrast",),
     "stages.prep.band": ("paper_statistics", "narrow_band"),
+    "stages.prep.upscaling": ("block_period", "deblocked"),
     "stages.prep.width": ("stroke_width", "soft_edges"),
     "stages.prep.supersampling": ("supersample_factor", "supersample"),
     "stages.prep.downsampling": ("downsample_factor", "downsample"),

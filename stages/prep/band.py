@@ -169,7 +169,8 @@ def grey_and_band(lit: np.ndarray, c: PrepConfig) -> tuple[np.ndarray, np.ndarra
 
 def band_at_scale(grey: np.ndarray, scale: float, pieces: list[list[int]] | None, band_data: dict,
                   c: PrepConfig) -> np.ndarray:
-    """The band again at the internal resolution of a supersampled or downsampled grey.
+    """The band again at the internal resolution of a supersampled or downsampled grey (or of a grey
+    smoothed at the drawing's own, ``scale`` 1: :mod:`~stages.prep.upscaling`).
 
     Each piece of a mosaic is banded with the threshold (and the grain's smoothing) that found its band at
     the drawing's resolution, the whole picture with the one of :func:`grey_and_band`; specks are
@@ -180,7 +181,7 @@ def band_at_scale(grey: np.ndarray, scale: float, pieces: list[list[int]] | None
     grey : numpy.ndarray
         float32 (H, W) at the internal resolution.
     scale : float
-        Internal pixels per drawing pixel (≠ 1).
+        Internal pixels per drawing pixel.
     pieces : list of list of int or None
         A mosaic's pieces (:func:`~stages.prep.layout.mosaic`), or None.
     band_data : dict
@@ -206,5 +207,5 @@ def band_at_scale(grey: np.ndarray, scale: float, pieces: list[list[int]] | None
                                 c.repair_passes, c.repair_neighbours,
                                 max(1, int(round(c.min_component_px * scale * scale))), c.repair_max_grey)
     if not mask.any():
-        raise InputError("blank image: no ink left at the internal resolution (prep.downsample)")
+        raise InputError("blank image: no ink left at the internal resolution (prep.downsample, prep.deblock)")
     return mask

@@ -20,7 +20,9 @@ it does and the choices made on purpose, with their reasons and measurements:
    black, and the narrow band found on it (hole repair with all 8 neighbours, not the reference's
    direction-dependent 5 of 6; the threshold kept clear of the paper grain); on the crop's box, on each
    piece of a mosaic, or on the whole page.
-7. :mod:`~stages.prep.supersampling` or :mod:`~stages.prep.downsampling`: thin aliased strokes worked
+7. :mod:`~stages.prep.upscaling`: a drawing enlarged from a low resolution (a staircase of blocks) is
+   smoothed at its block period, and the band found again.
+8. :mod:`~stages.prep.supersampling` or :mod:`~stages.prep.downsampling`: thin aliased strokes worked
    on at a higher resolution, wide ones at a lower (decided on :mod:`~stages.prep.width`), and the band
    found again there (:func:`~stages.prep.band.band_at_scale`).
 
@@ -45,6 +47,7 @@ from stages.prep.invert import invert
 from stages.prep.lighting import even_lighting
 from stages.prep.sheet import photographed_sheet
 from stages.prep.supersampling import supersampled
+from stages.prep.upscaling import deblocked
 from stages.prep.width import stroke_width
 
 
@@ -84,6 +87,10 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
         notes.append(note)
     else:
         grey, mask, band_data = grey_and_band(grey, c)
+    grey, period, more = deblocked(grey, mask, c.deblock)
+    notes += more
+    if period is not None:
+        mask = band_at_scale(grey, 1.0, pieces, band_data, c)
     width = stroke_width(mask) if c.supersample.enabled or c.downsample.enabled else None
     grey, factor, more = supersampled(grey, mask, width, c.supersample)
     notes += more
@@ -101,5 +108,6 @@ def run(cfg: dict, image_bytes: bytes, image_name: str = "") -> Artifact:
     return Artifact(arrays={"grey": grey, "mask": mask},
                     data={"height": source_shape[0], "width": source_shape[1], "scale": scale, "origin": origin,
                           **({"pieces": pieces} if pieces else {}), "stroke_width": width, "mode": mode,
+                          **({"block_period": period} if period is not None else {}),
                           **({"sheet_corners": sheet_corners} if sheet_corners else {}), **band_data},
                     notes=notes)
