@@ -29,7 +29,8 @@ STAGE_VERSION = "15"  # 2: paper-white pixels repaired only as one-pixel pinhole
 #                        a photographed sheet is cut out of the darker background round it; 13: it is
 #                        found before the inversion, turned or running off the photo, its box's desk painted;
 #                     14: a photographed sheet seen whole is flattened to its rectangle (prep.crop.sheet_flatten);
-#                     15: a drawing enlarged from a low resolution is smoothed at its block period (prep.deblock)
+#                     15: a drawing enlarged from a low resolution is smoothed at its block period (prep.deblock);
+#                        strokes that cut a grey page in two are no photographed sheet
 
 
 @dataclass
