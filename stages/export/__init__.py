@@ -12,10 +12,11 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "9"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "10"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
-#                     9: curves whose ends meet alone joined (export.meetings)
+#                     9: curves whose ends meet alone joined (export.meetings);
+#                     10: free ends the ink bridges joined at a corner (export.bridges)
 
 
 @dataclass
@@ -88,6 +89,16 @@ class MeetingsConfig:
 
 
 @dataclass
+class BridgesConfig:
+    """``export.bridges``: join two free curve ends the ink bridges (one corner found twice)."""
+
+    enabled: bool
+    max_px: float
+    max_widths: float
+    corners_only: bool
+
+
+@dataclass
 class ExportConfig:
     """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
@@ -105,6 +116,7 @@ class ExportConfig:
     corners: CornersConfig
     gaps: GapsConfig
     meetings: MeetingsConfig
+    bridges: BridgesConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
@@ -113,13 +125,15 @@ class ExportConfig:
             raise InputError("export config: need 0 ≤ join.max_turn_deg ≤ 180 and join.tangent_px > 0")
         if self.gaps.max_px < 0 or self.gaps.max_widths < 0 or not 0 <= self.gaps.max_turn_deg <= 90:
             raise InputError("export config: need gaps.max_px ≥ 0, gaps.max_widths ≥ 0, 0 ≤ gaps.max_turn_deg ≤ 90")
+        if self.bridges.max_px < 0 or self.bridges.max_widths < 0:
+            raise InputError("export config: need bridges.max_px ≥ 0 and bridges.max_widths ≥ 0")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.stage": ("run", "svg_document"),
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
     "stages.export.corners": ("join_at_corners", "join_linked"),
-    "stages.export.gaps": ("close_gaps", "join_lone_meetings"),
+    "stages.export.gaps": ("close_gaps", "join_bridged_ends", "join_lone_meetings"),
     "stages.export.joins": ("collapse_short_links", "join_continuations"),
     "stages.export.spurs": ("attach_spurs",),
     "stages.export.overshoots": ("extend_overshoots",),
