@@ -12,11 +12,12 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "10"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "11"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
 #                     9: curves whose ends meet alone joined (export.meetings);
-#                     10: free ends the ink bridges joined at a corner (export.bridges)
+#                     10: free ends the ink bridges joined at a corner (export.bridges);
+#                     11: ... never at an endpoint keypoint
 
 
 @dataclass

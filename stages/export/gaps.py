@@ -171,7 +171,7 @@ def join_lone_meetings(curves: list[dict]) -> list[dict]:
 
 
 def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_widths: float,
-                      end_types: tuple = (5,)) -> list[dict]:
+                      end_types: tuple = (5,), other_types: tuple = (0, 3, 5)) -> list[dict]:
     """Join two free curve ends that the ink bridges: one stroke feature found twice.
 
     The detector sometimes finds one sharp corner twice a few pixels apart (two corner keypoints
@@ -180,7 +180,8 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
     meeting radius, read as two free ends where the drawing turns.  Two free ends (as
     :func:`close_gaps` reads them) of different curves at most ``max(max_px, max_widths · w)`` apart
     (``w`` their mean stroke width), each the other's nearest such end, at least one of them at a
-    keypoint of ``end_types``, that the ink (the band ``mask``) connects within their bounding box
+    keypoint of ``end_types`` and the other of ``other_types`` (not at an endpoint keypoint, by default:
+    there the detector says a stroke ends), that the ink (the band ``mask``) connects within their bounding box
     (grown by half a width and a pixel: not round by a far stroke) are joined at any turn, the joint a corner vertex — nearest pairs first, each end once.  Unlike the
     gap closing, the ends need not face each other: the ink between them, not their direction, says
     they are one stroke.
@@ -194,7 +195,9 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
     max_px, max_widths : float
         Largest distance between the ends: ``max(max_px, max_widths · w)``.
     end_types : tuple of int
-        Keypoint types (``end_types`` codes) of which at least one of the two ends must be.
+        Keypoint types (``end_types`` codes) of which at least one of the two ends must be ...
+    other_types : tuple of int
+        ... and the other one of these.
 
     Returns
     -------
@@ -217,11 +220,12 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
     d = np.hypot(*(where[:, None] - where[None]).transpose(2, 0, 1))
     d[owner[:, None] == owner[None]] = np.inf                 # a curve's own two ends are not a pair
     nearest = np.argmin(d, axis=1)
-    typed = np.array([int(curves[n]["end_types"][e]) in end_types for n, e in ends])
+    kind = np.array([int(curves[n]["end_types"][e]) for n, e in ends])
+    needed, allowed = np.isin(kind, end_types), np.isin(kind, other_types)
     pairs = []
     for a, b in enumerate(nearest):
         b = int(b)
-        if b <= a or nearest[b] != a or not (typed[a] or typed[b]):
+        if b <= a or nearest[b] != a or not (needed[a] and allowed[b] or needed[b] and allowed[a]):
             continue
         i, j = ends[a][0], ends[b][0]
         if d[a, b] > max(max_px, max_widths * 0.5 * (width[i] + width[j])):

@@ -67,10 +67,11 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   ``gaps.max_turn_deg``, are joined across the gap, nearest first (:func:`~stages.export.gaps.close_gaps`).
 
 * **A corner found twice** (``bridges``).  Then two free ends of different curves, each the other's
-  nearest, at most ``max(bridges.max_px, bridges.max_widths · w)`` apart, at least one at a corner
-  keypoint (``bridges.corners_only``), that the ink connects between them (the band ``mask`` within
-  their box) are one stroke turning where the detector put two corner keypoints beyond its
-  suppression distance: joined at any turn, the joint a corner (:func:`~stages.export.gaps.join_bridged_ends`).
+  nearest, at most ``max(bridges.max_px, bridges.max_widths · w)`` apart, one at a corner keypoint
+  and neither at an endpoint keypoint (``bridges.corners_only``), that the ink connects between them
+  (the band ``mask`` within their box) are one stroke turning where the detector put two corner
+  keypoints beyond its suppression distance: joined at any turn, the joint a corner
+  (:func:`~stages.export.gaps.join_bridged_ends`).
 
 * **Ends that meet alone** (``meetings``).  After everything else, two curve ends of different curves
   that meet with nothing else near (each the other's only neighbour within max(2 px, w): valence two)
@@ -235,7 +236,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                             params.join.tangent_px)
     if tidy and params.bridges.enabled and mask is not None:
         curves = join_bridged_ends(curves, np.asarray(mask, bool), params.bridges.max_px, params.bridges.max_widths,
-                                   (5,) if params.bridges.corners_only else (0, 1, 3, 5))
+                                   *(((5,), (0, 3, 5)) if params.bridges.corners_only else ((0, 1, 3, 5),) * 2))
     if tidy and params.meetings.enabled:
         curves = join_lone_meetings(curves)
     if not internal_is_source(prep.data):

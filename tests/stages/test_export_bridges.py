@@ -49,3 +49,6 @@ def test_ends_without_ink_between_or_without_a_corner_keypoint_are_left():
     plain = [dict(p, end_types=[1, 1]) for p in pieces]   # two endpoints near each other: the detector says ends
     assert len(_run(plain, CFG, _ell_mask())) == 2
     assert len(_run(plain, _cfg(bridges={**CFG["bridges"], "corners_only": False}), _ell_mask())) == 1
+    # a corner keypoint beside an endpoint keypoint: the detector says a stroke ends there
+    tip = [pieces[0], dict(pieces[1], end_types=[1, 1])]
+    assert len(_run(tip, CFG, _ell_mask())) == 2
