@@ -12,11 +12,13 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "9"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "12"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
 #                     9: curves whose ends meet alone joined (export.meetings), passes of the pen
-#                        over one line merged into one curve (export.passes)
+#                        over one line merged into one curve (export.passes);
+#                     10: free ends the ink bridges joined at a corner (export.bridges);
+#                     11: ... never at an endpoint keypoint; 12: passes and bridges together
 
 
 @dataclass
@@ -100,6 +102,16 @@ class MeetingsConfig:
 
 
 @dataclass
+class BridgesConfig:
+    """``export.bridges``: join two free curve ends the ink bridges (one corner found twice)."""
+
+    enabled: bool
+    max_px: float
+    max_widths: float
+    corners_only: bool
+
+
+@dataclass
 class ExportConfig:
     """The ``export`` config section (``conf/export/default.yaml``), one field per key."""
 
@@ -118,6 +130,7 @@ class ExportConfig:
     gaps: GapsConfig
     passes: PassesConfig
     meetings: MeetingsConfig
+    bridges: BridgesConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
@@ -129,13 +142,15 @@ class ExportConfig:
         if self.passes.max_gap_widths < 0 or self.passes.min_run_widths < 0 or not 0 <= self.passes.max_angle_deg <= 90:
             raise InputError("export config: need passes.max_gap_widths ≥ 0, passes.min_run_widths ≥ 0, "
                              "0 ≤ passes.max_angle_deg ≤ 90")
+        if self.bridges.max_px < 0 or self.bridges.max_widths < 0:
+            raise InputError("export config: need bridges.max_px ≥ 0 and bridges.max_widths ≥ 0")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.stage": ("run", "svg_document"),
     "stages.export.bezier": ("fit_cubic_beziers", "fit_with_corners"),
     "stages.export.corners": ("join_at_corners", "join_linked"),
-    "stages.export.gaps": ("close_gaps", "join_lone_meetings"),
+    "stages.export.gaps": ("close_gaps", "join_bridged_ends", "join_lone_meetings"),
     "stages.export.passes": ("merge_passes",),
     "stages.export.joins": ("collapse_short_links", "join_continuations"),
     "stages.export.spurs": ("attach_spurs",),

@@ -6,6 +6,7 @@ Described in :mod:`stages.export.stage` (``export.gaps``); measurements in stage
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import label
 
 from stages.export.corners import join_linked
 from stages.export.end_index import _PointGrid, _within
@@ -167,3 +168,91 @@ def join_lone_meetings(curves: list[dict]) -> list[dict]:
         if np.hypot(*(at[a] - at[b])) <= max(FREE_PX, width[a[0]], width[b[0]]):
             link[a], link[b] = b, a
     return join_linked(curves, link, corner_joints=False) if link else curves
+
+
+def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_widths: float,
+                      end_types: tuple = (5,), other_types: tuple = (0, 3, 5)) -> list[dict]:
+    """Join two free curve ends that the ink bridges: one stroke feature found twice.
+
+    The detector sometimes finds one sharp corner twice a few pixels apart (two corner keypoints
+    beyond its suppression distance), or a corner next to where the topology ended a chain (a
+    synthetic end); the selection ends one curve at each, and the two ends, farther apart than the
+    meeting radius, read as two free ends where the drawing turns.  Two free ends (as
+    :func:`close_gaps` reads them) of different curves at most ``max(max_px, max_widths · w)`` apart
+    (``w`` their mean stroke width), each the other's nearest such end, at least one of them at a
+    keypoint of ``end_types`` and the other of ``other_types`` (not at an endpoint keypoint, by default:
+    there the detector says a stroke ends), that the ink (the band ``mask``) connects within their bounding box
+    (grown by half a width and a pixel: not round by a far stroke) are joined at any turn, the joint a corner vertex — nearest pairs first, each end once.  Unlike the
+    gap closing, the ends need not face each other: the ink between them, not their direction, says
+    they are one stroke.
+
+    Parameters
+    ----------
+    curves : list of dict
+        As :func:`close_gaps`.
+    mask : numpy.ndarray
+        bool (H, W) band (prep ``mask``), in the curves' (internal) pixel coordinates.
+    max_px, max_widths : float
+        Largest distance between the ends: ``max(max_px, max_widths · w)``.
+    end_types : tuple of int
+        Keypoint types (``end_types`` codes) of which at least one of the two ends must be ...
+    other_types : tuple of int
+        ... and the other one of these.
+
+    Returns
+    -------
+    list of dict
+        The curves after joining (as :func:`~stages.export.corners.join_linked`, joints marked as
+        corners).
+    """
+    if len(curves) < 2:
+        return curves
+    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
+    grid = _PointGrid(FREE_PX)
+    for n, p in enumerate(pts):
+        grid.add(n, p)
+    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
+    ends, where, _ = _free_ends(pts, width, grid)
+    if len(ends) < 2:
+        return curves
+    where = np.array(where)
+    owner = np.array([n for n, _ in ends])
+    d = np.hypot(*(where[:, None] - where[None]).transpose(2, 0, 1))
+    d[owner[:, None] == owner[None]] = np.inf                 # a curve's own two ends are not a pair
+    nearest = np.argmin(d, axis=1)
+    kind = np.array([int(curves[n]["end_types"][e]) for n, e in ends])
+    needed, allowed = np.isin(kind, end_types), np.isin(kind, other_types)
+    pairs = []
+    for a, b in enumerate(nearest):
+        b = int(b)
+        if b <= a or nearest[b] != a or not (needed[a] and allowed[b] or needed[b] and allowed[a]):
+            continue
+        i, j = ends[a][0], ends[b][0]
+        if d[a, b] > max(max_px, max_widths * 0.5 * (width[i] + width[j])):
+            continue
+        if _ink_connects(mask, where[a], where[b], 0.5 * max(width[i], width[j]) + 1.0):
+            pairs.append((float(d[a, b]), a, b))
+    link: dict = {}
+    for _, a, b in sorted(pairs):
+        link[ends[a]], link[ends[b]] = ends[b], ends[a]
+    return join_linked(curves, link, corner_joints=True) if link else curves
+
+
+def _ink_connects(mask: np.ndarray, p: np.ndarray, q: np.ndarray, pad: float) -> bool:
+    """Whether the band pixels under ``p`` and ``q`` (x, y) are one connected piece of ink within the
+    box spanned by the two points grown by ``pad`` px (8-connected; a point off the ink fails).
+
+    The chord between two ends at a sharp turn cuts across the turn's inner corner, outside the ink;
+    the ink round the turn connects them, a far stroke's ink does not (it lies outside the box).
+    """
+    h, w = mask.shape
+    lo = np.floor(np.minimum(p, q) - pad).astype(int)
+    hi = np.floor(np.maximum(p, q) + pad).astype(int) + 1
+    x0, y0 = max(lo[0], 0), max(lo[1], 0)
+    x1, y1 = min(hi[0], w), min(hi[1], h)
+    if x1 <= x0 or y1 <= y0:
+        return False
+    lab, _ = label(mask[y0:y1, x0:x1], structure=np.ones((3, 3), bool))
+    at = [lab[int(np.clip(np.floor(r[1]) - y0, 0, y1 - y0 - 1)), int(np.clip(np.floor(r[0]) - x0, 0, x1 - x0 - 1))]
+          for r in (p, q)]
+    return at[0] > 0 and at[0] == at[1]

@@ -20,7 +20,7 @@ Output (data of the artifact; the engine writes the files):
 
 The authors export raw polylines only (no Bézier fitting); this is an addition.
 
-Six clean-ups of the selected curves, each a choice beyond the paper (the authors export the
+Eight clean-ups of the selected curves, each a choice beyond the paper (the authors export the
 selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
 unchanged by the first four (a curve passing a point counts twice, like two ends).
 
@@ -71,6 +71,13 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   ``max(gaps.max_px, gaps.max_widths · w)`` apart, each pointing at the other within
   ``gaps.max_turn_deg``, are joined across the gap, nearest first (:func:`~stages.export.gaps.close_gaps`).
 
+* **A corner found twice** (``bridges``).  Then two free ends of different curves, each the other's
+  nearest, at most ``max(bridges.max_px, bridges.max_widths · w)`` apart, one at a corner keypoint
+  and neither at an endpoint keypoint (``bridges.corners_only``), that the ink connects between them
+  (the band ``mask`` within their box) are one stroke turning where the detector put two corner
+  keypoints beyond its suppression distance: joined at any turn, the joint a corner
+  (:func:`~stages.export.gaps.join_bridged_ends`).
+
 * **Ends that meet alone** (``meetings``).  After everything else, two curve ends of different curves
   that meet with nothing else near (each the other's only neighbour within max(2 px, w): valence two)
   are one stroke going on, whatever the turn, and are joined (:func:`~stages.export.gaps.join_lone_meetings`);
@@ -92,7 +99,7 @@ from stages.errors import InputError
 from stages.export import ExportConfig
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
-from stages.export.gaps import close_gaps, join_lone_meetings
+from stages.export.gaps import close_gaps, join_bridged_ends, join_lone_meetings
 from stages.export.joins import collapse_short_links, join_continuations
 from stages.export.overshoots import extend_overshoots
 from stages.export.passes import merge_passes
@@ -236,6 +243,14 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px)
+    if tidy and params.bridges.enabled and mask is not None:
+        # Keypoint types (end_types codes): 0 none, 1 endpoint, 3 junction, 5 corner.
+        if params.bridges.corners_only:
+            at_one, at_other = (5,), (0, 3, 5)     # a corner found twice; never across an endpoint keypoint
+        else:
+            at_one = at_other = (0, 1, 3, 5)
+        curves = join_bridged_ends(curves, np.asarray(mask, bool), params.bridges.max_px, params.bridges.max_widths,
+                                   at_one, at_other)
     if tidy and params.meetings.enabled:
         curves = join_lone_meetings(curves)
     if not internal_is_source(prep.data):

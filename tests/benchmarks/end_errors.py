@@ -1,0 +1,151 @@
+"""Benchmark helper: the acceptance scorer's missed and false endpoints, classed by what lies there (not a test).
+
+Usage::
+
+    polyvec CASES output=OUT store.path=STORE
+    python tests/benchmarks/end_errors.py OUT CASES STORE [--json errors.json]
+
+The free ends are the acceptance scorer's own (``../shared/tools/score.py``, ``topology``, run as it
+is), ground truth and output matched one to one within max(5, w) px as ``match_f1`` does (the greedy
+matching of :mod:`junction_errors`).  Each false end (output, unmatched) is classed by
+
+- ``spur``: its curve is shorter than 3 r (the scorer's spurious branch), r = max(2, w);
+- ``off``: no ground-truth stroke within the tolerance (ink the truth does not draw);
+- ``at-junc``: a ground-truth junction within 2 r (a curve stopping at, or short of, a meeting);
+- ``break``: another false output end within 4 r (a stroke broken in two, the pieces facing);
+- ``short``: a missed ground-truth end within 4 r (the curve stops short of the stroke's real end);
+- ``mid``: anything else on a stroke (a curve ends in the middle of a stroke, nothing facing it);
+
+and each missed end (ground truth, unmatched) by
+
+- ``stops-short``: an output curve end (free or not) within 4 r: the output stops before it (or the
+  end there is not free);
+- ``passes``: an output curve comes within r but no output end does (the curve goes on: the stroke's
+  end is joined into something);
+- ``lost``: nothing of the output within r (the stroke's tip is not drawn);
+
+each with the nearest detected keypoint's type within 5 px (the image's newest ``keypoints`` artifact
+in ``STORE``), or ``none``.  For each class the table gives its count and the endpoint F1 median /
+mean over the cases if that class alone were right.  Use it on a validation split; never to choose on
+the set you report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from junction_errors import NEAR, SCORER, TYPE_NAMES, unmatched  # noqa: E402
+
+from pipeline.inspect import resolve  # noqa: E402
+from pipeline.engine.store import ArtifactStore  # noqa: E402
+
+
+def _near(points: np.ndarray, p: np.ndarray, radius: float) -> bool:
+    return bool(len(points)) and float(np.linalg.norm(points - p, axis=1).min()) <= radius
+
+
+def _keypoint(p: np.ndarray, points: np.ndarray, types: np.ndarray) -> str:
+    if len(points):
+        d = np.linalg.norm(points - p, axis=1)
+        if d.min() <= NEAR:
+            return TYPE_NAMES.get(int(types[int(np.argmin(d))]), "other")
+    return "none"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out", type=Path, help="folder of <case>.svg (polyvec's output)")
+    ap.add_argument("cases", type=Path, help="folder of scored cases (<case>.png and .json)")
+    ap.add_argument("store", help="artifact store of that run (for the detected keypoints)")
+    ap.add_argument("--json", type=Path, default=None, help="write every missed / false end here")
+    a = ap.parse_args(argv)
+    sys.path.insert(0, str(SCORER))
+    import score as S  # the acceptance scorer, run as it is
+
+    store = ArtifactStore(a.store, create=False)
+    counts: dict[str, collections.Counter] = {}
+    totals = collections.Counter()
+    rows = []
+    for case_json in sorted(a.cases.glob("*.json")):
+        png = case_json.with_suffix(".png")
+        if case_json.name.endswith(".keypoints.json") or not png.exists():
+            continue
+        gt = json.loads(case_json.read_text())
+        w = float(gt["width"])
+        r, tol = max(2.0, w), max(5.0, w)
+        strokes = [S.resample(s) for s in gt["strokes"]]
+        curves = [c for c in (S.resample(c) for c in S.svg_polylines(str(a.out / f"{png.stem}.svg"))) if len(c) >= 2]
+        ge, gj, _, _ = S.topology(strokes, r)
+        oe, _, _, _ = S.topology(curves, r)
+        kp = store.load("keypoints", resolve(store, "keypoints", None, str(png)))
+        points, types = np.asarray(kp.arrays["points"]), np.asarray(kp.arrays["types"])
+        gt_pts = np.concatenate(strokes)
+        out_pts = np.concatenate(curves) if curves else np.zeros((0, 2))
+        out_ends = np.array([c[k] for c in curves for k in (0, -1)]).reshape(-1, 2)
+        missed, false = unmatched(oe, ge, tol)
+        c = counts.setdefault(png.stem, collections.Counter())
+        c["_matched"] = int((~missed).sum())
+        for p in oe[false]:
+            curve = min(curves, key=lambda q: min(np.linalg.norm(q[[0, -1]] - p, axis=1)))
+            others = oe[false][np.linalg.norm(oe[false] - p, axis=1) > 1e-9]
+            if len(curve) * 0.5 < 3 * r:
+                kind = "spur"
+            elif not _near(gt_pts, p, tol):
+                kind = "off"
+            elif _near(gj, p, 2 * r):
+                kind = "at-junc"
+            elif _near(others, p, 4 * r):
+                kind = "break"
+            elif _near(ge[missed], p, 4 * r):
+                kind = "short"
+            else:
+                kind = "mid"
+            cls = f"false {kind} kp={_keypoint(p, points, types)}"
+            c[cls] += 1
+            rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
+        for p in ge[missed]:
+            d_end = float(np.linalg.norm(out_ends - p, axis=1).min()) if len(out_ends) else np.inf
+            if d_end <= 4 * r:
+                kind = "stops-short"
+            elif _near(out_pts, p, r):
+                kind = "passes"
+            else:
+                kind = "lost"
+            cls = f"missed {kind} kp={_keypoint(p, points, types)}"
+            c[cls] += 1
+            rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1]),
+                         "nearest_out_end": d_end})
+        totals.update(truth=len(ge), output=len(oe), matched=int((~missed).sum()))
+
+    def f1(case: collections.Counter, fixed: str | None) -> float:
+        fn = sum(v for k, v in case.items() if k.startswith("missed"))
+        fp = sum(v for k, v in case.items() if k.startswith("false"))
+        tp = case["_matched"]
+        if fixed is not None and fixed.startswith("missed"):
+            fn, tp = fn - case[fixed], tp + case[fixed]
+        elif fixed is not None:
+            fp -= case[fixed]
+        return 1.0 if tp + fp + fn == 0 else 2 * tp / (2 * tp + fp + fn)
+
+    classes = sorted({k for c in counts.values() for k in c if not k.startswith("_")})
+    print(f"{len(counts)} cases of {a.cases}: {totals['truth']} scorer ends in the ground truth, "
+          f"{totals['output']} in the output, {totals['matched']} matched")
+    print(f"{'class':<34}{'count':>7}  endpoint F1 median / mean if right")
+    for cls in [None] + classes:
+        vals = [f1(c, cls) for c in counts.values()]
+        n = sum(c[cls] for c in counts.values()) if cls else 0
+        print(f"{cls or '(as it is)':<34}{n:>7}  {np.median(vals):.3f} / {np.mean(vals):.3f}")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
