@@ -18,7 +18,8 @@ STAGE_VERSION = "12"  # 4: no curve shorter than min_length_px; 5: curves joined
 #                     9: curves whose ends meet alone joined (export.meetings), passes of the pen
 #                        over one line merged into one curve (export.passes);
 #                     10: free ends the ink bridges joined at a corner (export.bridges);
-#                     11: ... never at an endpoint keypoint; 12: passes and bridges together
+#                     11: ... never at an endpoint keypoint; 12: passes and bridges together, no meeting
+#                        joined at a keypoint the user edited
 
 
 @dataclass

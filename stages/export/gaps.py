@@ -130,7 +130,7 @@ def _free_ends(pts: list[np.ndarray], width: list[float], grid: "_PointGrid") ->
     return ends, where, only
 
 
-def join_lone_meetings(curves: list[dict]) -> list[dict]:
+def join_lone_meetings(curves: list[dict], kept_keypoints: frozenset = frozenset()) -> list[dict]:
     """Join the two curves whose ends meet alone (a meeting of valence two) into one curve.
 
     Where exactly two curve ends meet — each the other's only neighbour within max(FREE_PX, w), no
@@ -138,12 +138,15 @@ def join_lone_meetings(curves: list[dict]) -> list[dict]:
     the selection found no third branch for), whatever the turn.  Drawn as two curves it lets the
     stroke's later crossings and touches of itself read as junctions of two curves (the acceptance
     scorer, like a person following the pen, counts none where one stroke meets itself); joined, they
-    are one curve.  Ends of one curve (a closed loop) are left.
+    are one curve.  Ends of one curve (a closed loop) are left, and so are ends at a keypoint in
+    ``kept_keypoints`` (one the user added or retyped: an artist's junction is kept where it was put).
 
     Parameters
     ----------
     curves : list of dict
         As :func:`close_gaps`.
+    kept_keypoints : frozenset of int
+        Keypoint indices (the curves' ``end_keypoints``) whose ends are never joined here.
 
     Returns
     -------
@@ -163,11 +166,24 @@ def join_lone_meetings(curves: list[dict]) -> list[dict]:
     for a, b in partner.items():
         if b is None or b[0] == a[0] or partner.get(b) != a or a in link or b in link:
             continue
+        if any(_end_keypoint(curves[n], e) in kept_keypoints for n, e in (a, b)):   # this very meeting
+            continue
         # each is the other's only neighbour; their ends themselves meet (not just one end and the
         # other's last stretch of arc)
         if np.hypot(*(at[a] - at[b])) <= max(FREE_PX, width[a[0]], width[b[0]]):
             link[a], link[b] = b, a
     return join_linked(curves, link, corner_joints=False) if link else curves
+
+
+def _end_keypoint(curve: dict, end: int) -> int:
+    """The keypoint index at a curve's end 0 (start) or 1 (finish); -1 for a synthetic end."""
+    kps = curve.get("end_keypoints") or (-1, -1)
+    return int(kps[0 if end == 0 else -1])
+
+
+def ends_at_keypoints(curve: dict, keypoints: frozenset) -> bool:
+    """Whether either end of ``curve`` is at one of ``keypoints`` (indices, as its ``end_keypoints``)."""
+    return bool(keypoints) and any(_end_keypoint(curve, e) in keypoints for e in (0, 1))
 
 
 def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_widths: float,

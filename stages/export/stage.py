@@ -99,7 +99,7 @@ from stages.errors import InputError
 from stages.export import ExportConfig
 from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
-from stages.export.gaps import close_gaps, join_bridged_ends, join_lone_meetings
+from stages.export.gaps import close_gaps, ends_at_keypoints, join_bridged_ends, join_lone_meetings
 from stages.export.joins import collapse_short_links, join_continuations
 from stages.export.overshoots import extend_overshoots
 from stages.export.passes import merge_passes
@@ -237,9 +237,13 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                                    params.overshoot.max_widths, params.overshoot.clearance)
     if tidy and params.corners.enabled:
         curves = join_at_corners(curves)
+    # Keypoints the user added or retyped: the curves ending there are neither merged nor joined away.
+    edited = frozenset(topo.data.get("edited_keypoints") or ())
     if tidy and params.passes.enabled:
-        curves = merge_passes(curves, params.passes.max_gap_widths, params.passes.min_run_widths,
-                              params.passes.max_angle_deg, params.passes.end_slack_widths)
+        held = [c for c in curves if ends_at_keypoints(c, edited)]
+        curves = merge_passes([c for c in curves if not ends_at_keypoints(c, edited)], params.passes.max_gap_widths,
+                              params.passes.min_run_widths, params.passes.max_angle_deg,
+                              params.passes.end_slack_widths) + held
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px)
@@ -252,7 +256,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = join_bridged_ends(curves, np.asarray(mask, bool), params.bridges.max_px, params.bridges.max_widths,
                                    at_one, at_other)
     if tidy and params.meetings.enabled:
-        curves = join_lone_meetings(curves)
+        curves = join_lone_meetings(curves, edited)
     if not internal_is_source(prep.data):
         # prep supersampled thin or downsampled wide strokes, or cropped the drawing out of its page:
         # every stage so far worked at internal x = scale · (source x − origin), the pixel corners

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "5"  # 5: a subgraph chain no kept candidate covers is offered as a candidate
+STAGE_VERSION = "6"  # 5: a subgraph chain no kept candidate covers is offered as a candidate;
+#                    6: the keypoints the user edited listed (edited_keypoints)
 
 __all__ = ["STAGE_VERSION", "run", "render_topology", "TopologyConfig", "candidate_paths"]
 

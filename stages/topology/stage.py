@@ -128,7 +128,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     Returns
     -------
     Artifact
-        data ``paths``, ``key_vertices``, ``steiner_edges``, ``counts``, ``timings``; arrays
+        data ``paths``, ``key_vertices``, ``edited_keypoints``, ``steiner_edges``, ``counts``, ``timings``; arrays
         ``coverage`` + ``coverage_offsets`` (flat pixel indices per path) and ``steiner_segments``
         (S, 4) ``[x0, y0, x1, y1]`` for rendering.
     """
@@ -164,5 +164,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         arrays={"coverage": cov.astype(np.int32), "coverage_offsets": cov_off,
                 "steiner_segments": np.asarray(out["steiner_segments"], np.float64)},
         data={"paths": out["paths"], "key_vertices": out["key_vertices"],
+              # keypoints the user added or retyped (keypoint_edits): the export keeps curve ends there
+              "edited_keypoints": [i for i, p in enumerate(keypoints.data.get("points") or []) if p.get("edited")],
               "keypoint_branches": out["keypoint_branches"], "steiner_edges": out["steiner_edges"],
               "counts": out["counts"], "timings": out["timings"]})

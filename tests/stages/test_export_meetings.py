@@ -49,3 +49,17 @@ def test_three_ends_a_passing_curve_or_a_closed_loop_are_left():
     ring = np.array([[20 + 10 * np.cos(t), 20 + 10 * np.sin(t)] for t in np.linspace(0, 2 * np.pi, 64)])
     loop = _piece(1, ring, [3, 3], [1, 1])
     assert len(join_lone_meetings([loop])) == 1
+
+
+def test_a_junction_the_user_added_keeps_its_curve_ends():
+    # The same stroke, its first turn (keypoint 1) a junction the user added in the inspection page:
+    # the artist's junction stays a meeting of curve ends; the other turn is still joined.
+    pieces = _stroke_turning_at_junction_keypoints()
+    inputs = _inputs([p["points"] for p in pieces], list(range(len(pieces))), shape=(48, 48))
+    for p, c in zip(inputs["topology"].data["paths"], pieces):
+        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
+    inputs["topology"].data["edited_keypoints"] = [1]
+    out = export.run(CFG, **inputs).data["curves"]
+    assert len(out) == 2
+    ends = [np.asarray(c["points"])[k] for c in out for k in (0, -1)]
+    assert sum(np.hypot(x - 40, y - 40) < 1.0 for x, y in ends) == 2     # two ends at the added junction
