@@ -218,7 +218,9 @@ def test_the_keypoints_child_keeps_arrays_over_the_mmap_ceiling_in_its_heap():
     faults = {mode: int(subprocess.run([sys.executable, "-c", child, mode], capture_output=True, text=True,
                                        check=True).stdout.split()[-1]) for mode in ("stages", "network")}
     assert faults["stages"] > 16 * 8000
-    assert faults["network"] < 2 * 10240     # the heap may still grow once more (glibc's bins)
+    # the heap may still grow a few times (glibc's bins; twice more seen on a busy machine: 30,720 faults),
+    # still a fifth of the fresh mappings' 16 × 10,240
+    assert faults["network"] < 4 * 10240
 
 
 def test_the_keypoints_child_sets_its_heap_before_its_stages_load():
