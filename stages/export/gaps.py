@@ -52,14 +52,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     """
     if len(curves) < 2:
         return curves
-    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
-    # The export's own grid, not scipy.spatial: a λ re-run (flow → select → export) then loads no
-    # scipy.spatial, whose import cost about a tenth of that re-run.
-    grid = _PointGrid(FREE_PX)
-    for n, p in enumerate(pts):
-        grid.add(n, p)
-    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where, only = _free_ends(pts, width, grid)
+    pts, width, ends, where, only = _curves_free_ends(curves)
     if len(ends) < 2:
         return curves
     where = np.array(where)
@@ -67,12 +60,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     reach = max(max_px, max_widths * max(width))
     cos_max = np.cos(np.radians(max_turn_deg))
     pairs = []
-    end_grid = _PointGrid(reach)
-    for a, q in enumerate(where):
-        end_grid.add(a, q[None])
-    near_pairs = [(a, b) for a in range(len(ends)) for b in end_grid.near(where[a], reach)
-                  if b > a and _within(where[b], where[a], reach)[0]]
-    for a, b in near_pairs:
+    for a, b in _pairs_within(where, reach):
         i, j = ends[a][0], ends[b][0]
         if i == j or only[a] not in (None, ends[b]) or only[b] not in (None, ends[a]):
             continue
@@ -102,6 +90,27 @@ def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, i
     if arc[-1] - arc[idx].min() <= reach:
         return o, 1
     return None
+
+
+def _curves_free_ends(curves: list[dict]) -> tuple[list, list, list, list, list]:
+    """The curves' points and widths (0 for none), and :func:`_free_ends` of them."""
+    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
+    # The export's own grid, not scipy.spatial: a λ re-run (flow → select → export) then loads no
+    # scipy.spatial, whose import cost about a tenth of that re-run.
+    grid = _PointGrid(FREE_PX)
+    for n, p in enumerate(pts):
+        grid.add(n, p)
+    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
+    return (pts, width, *_free_ends(pts, width, grid))
+
+
+def _pairs_within(where: np.ndarray, reach: float) -> list[tuple[int, int]]:
+    """Index pairs ``(a, b)``, ``a < b``, of the points ``where`` (k, 2) at most ``reach`` apart."""
+    grid = _PointGrid(max(reach, 1e-3))                      # cells of no size: reach may be 0
+    for a, q in enumerate(where):
+        grid.add(a, q[None])
+    return [(a, b) for a in range(len(where)) for b in grid.near(where[a], reach)
+            if b > a and _within(where[b], where[a], reach)[0]]
 
 
 def _free_ends(pts: list[np.ndarray], width: list[float], grid: "_PointGrid") -> tuple[list, list, list]:
@@ -155,12 +164,7 @@ def join_lone_meetings(curves: list[dict], kept_keypoints: frozenset = frozenset
     """
     if len(curves) < 2:
         return curves
-    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
-    grid = _PointGrid(FREE_PX)
-    for n, p in enumerate(pts):
-        grid.add(n, p)
-    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where, only = _free_ends(pts, width, grid)
+    _, width, ends, where, only = _curves_free_ends(curves)
     partner, at = dict(zip(ends, only)), dict(zip(ends, where))
     link: dict = {}
     for a, b in partner.items():
@@ -223,19 +227,21 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
     """
     if len(curves) < 2:
         return curves
-    pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
-    grid = _PointGrid(FREE_PX)
-    for n, p in enumerate(pts):
-        grid.add(n, p)
-    width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where, _ = _free_ends(pts, width, grid)
+    _, width, ends, where, _ = _curves_free_ends(curves)
     if len(ends) < 2:
         return curves
     where = np.array(where)
-    owner = np.array([n for n, _ in ends])
-    d = np.hypot(*(where[:, None] - where[None]).transpose(2, 0, 1))
-    d[owner[:, None] == owner[None]] = np.inf                 # a curve's own two ends are not a pair
-    nearest = np.argmin(d, axis=1)
+    # Each end's nearest free end of another curve, among those within the largest reach (a farther
+    # one could not be joined): a grid, not an all-pairs matrix, on a page of thousands of ends.
+    reach = max(max_px, max_widths * max(width))
+    nearest, dist = np.full(len(ends), -1), np.full(len(ends), np.inf)
+    for a, b in _pairs_within(where, reach):
+        if ends[a][0] == ends[b][0]:
+            continue                                           # a curve's own two ends are not a pair
+        d_ab = float(np.hypot(*(where[a] - where[b])))
+        for x, y in ((a, b), (b, a)):
+            if (d_ab, y) < (dist[x], nearest[x] if nearest[x] >= 0 else len(ends)):
+                nearest[x], dist[x] = y, d_ab
     kind = np.array([int(curves[n]["end_types"][e]) for n, e in ends])
     needed, allowed = np.isin(kind, end_types), np.isin(kind, other_types)
     pairs = []
@@ -244,10 +250,10 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
         if b <= a or nearest[b] != a or not (needed[a] and allowed[b] or needed[b] and allowed[a]):
             continue
         i, j = ends[a][0], ends[b][0]
-        if d[a, b] > max(max_px, max_widths * 0.5 * (width[i] + width[j])):
+        if dist[a] > max(max_px, max_widths * 0.5 * (width[i] + width[j])):
             continue
         if _ink_connects(mask, where[a], where[b], 0.5 * max(width[i], width[j]) + 1.0):
-            pairs.append((float(d[a, b]), a, b))
+            pairs.append((float(dist[a]), a, b))
     link: dict = {}
     for _, a, b in sorted(pairs):
         link[ends[a]], link[ends[b]] = ends[b], ends[a]

@@ -41,22 +41,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from junction_errors import NEAR, SCORER, TYPE_NAMES, unmatched  # noqa: E402
+from junction_errors import SCORER, keypoint_type, near, print_table, unmatched  # noqa: E402
 
 from pipeline.inspect import resolve  # noqa: E402
 from pipeline.engine.store import ArtifactStore  # noqa: E402
-
-
-def _near(points: np.ndarray, p: np.ndarray, radius: float) -> bool:
-    return bool(len(points)) and float(np.linalg.norm(points - p, axis=1).min()) <= radius
-
-
-def _keypoint(p: np.ndarray, points: np.ndarray, types: np.ndarray) -> str:
-    if len(points):
-        d = np.linalg.norm(points - p, axis=1)
-        if d.min() <= NEAR:
-            return TYPE_NAMES.get(int(types[int(np.argmin(d))]), "other")
-    return "none"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,53 +85,34 @@ def main(argv: list[str] | None = None) -> int:
             others = oe[false][np.linalg.norm(oe[false] - p, axis=1) > 1e-9]
             if len(curve) * 0.5 < 3 * r:
                 kind = "spur"
-            elif not _near(gt_pts, p, tol):
+            elif not near(gt_pts, p, tol):
                 kind = "off"
-            elif _near(gj, p, 2 * r):
+            elif near(gj, p, 2 * r):
                 kind = "at-junc"
-            elif _near(others, p, 4 * r):
+            elif near(others, p, 4 * r):
                 kind = "break"
-            elif _near(ge[missed], p, 4 * r):
+            elif near(ge[missed], p, 4 * r):
                 kind = "short"
             else:
                 kind = "mid"
-            cls = f"false {kind} kp={_keypoint(p, points, types)}"
+            cls = f"false {kind} kp={keypoint_type(p, points, types)}"
             c[cls] += 1
             rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
         for p in ge[missed]:
             d_end = float(np.linalg.norm(out_ends - p, axis=1).min()) if len(out_ends) else np.inf
             if d_end <= 4 * r:
                 kind = "stops-short"
-            elif _near(out_pts, p, r):
+            elif near(out_pts, p, r):
                 kind = "passes"
             else:
                 kind = "lost"
-            cls = f"missed {kind} kp={_keypoint(p, points, types)}"
+            cls = f"missed {kind} kp={keypoint_type(p, points, types)}"
             c[cls] += 1
             rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1]),
                          "nearest_out_end": d_end})
         totals.update(truth=len(ge), output=len(oe), matched=int((~missed).sum()))
 
-    def f1(case: collections.Counter, fixed: str | None) -> float:
-        fn = sum(v for k, v in case.items() if k.startswith("missed"))
-        fp = sum(v for k, v in case.items() if k.startswith("false"))
-        tp = case["_matched"]
-        if fixed is not None and fixed.startswith("missed"):
-            fn, tp = fn - case[fixed], tp + case[fixed]
-        elif fixed is not None:
-            fp -= case[fixed]
-        return 1.0 if tp + fp + fn == 0 else 2 * tp / (2 * tp + fp + fn)
-
-    classes = sorted({k for c in counts.values() for k in c if not k.startswith("_")})
-    print(f"{len(counts)} cases of {a.cases}: {totals['truth']} scorer ends in the ground truth, "
-          f"{totals['output']} in the output, {totals['matched']} matched")
-    print(f"{'class':<34}{'count':>7}  endpoint F1 median / mean if right")
-    for cls in [None] + classes:
-        vals = [f1(c, cls) for c in counts.values()]
-        n = sum(c[cls] for c in counts.values()) if cls else 0
-        print(f"{cls or '(as it is)':<34}{n:>7}  {np.median(vals):.3f} / {np.mean(vals):.3f}")
-    if a.json:
-        a.json.write_text(json.dumps(rows, indent=1))
+    print_table(counts, totals, "end", a.cases, rows, a.json)
     return 0
 
 

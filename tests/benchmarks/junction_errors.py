@@ -58,17 +58,53 @@ def unmatched(pred: np.ndarray, ref: np.ndarray, tol: float) -> tuple[np.ndarray
     return ref_free, pred_free
 
 
-def classify(p: np.ndarray, stroke_ends: np.ndarray, r: float, labels: np.ndarray, points: np.ndarray,
-             types: np.ndarray) -> str:
-    """``'end|mid lab|unlab kp=TYPE|none'`` of one junction position ``p``."""
-    where = "end" if len(stroke_ends) and np.linalg.norm(stroke_ends - p, axis=1).min() <= 2 * r else "mid"
-    lab = "lab" if len(labels) and np.linalg.norm(labels - p, axis=1).min() <= NEAR else "unlab"
-    kp = "none"
+def near(points: np.ndarray, p: np.ndarray, radius: float) -> bool:
+    """Whether any of ``points`` lies within ``radius`` of ``p``."""
+    return bool(len(points)) and float(np.linalg.norm(points - p, axis=1).min()) <= radius
+
+
+def keypoint_type(p: np.ndarray, points: np.ndarray, types: np.ndarray) -> str:
+    """The type name of the detected keypoint nearest ``p`` within :data:`NEAR`, or ``'none'``."""
     if len(points):
         d = np.linalg.norm(points - p, axis=1)
         if d.min() <= NEAR:
-            kp = TYPE_NAMES.get(int(types[int(np.argmin(d))]), "other")
-    return f"{where} {lab} kp={kp}"
+            return TYPE_NAMES.get(int(types[int(np.argmin(d))]), "other")
+    return "none"
+
+
+def classify(p: np.ndarray, stroke_ends: np.ndarray, r: float, labels: np.ndarray, points: np.ndarray,
+             types: np.ndarray) -> str:
+    """``'end|mid lab|unlab kp=TYPE|none'`` of one junction position ``p``."""
+    where = "end" if near(stroke_ends, p, 2 * r) else "mid"
+    lab = "lab" if near(labels, p, NEAR) else "unlab"
+    return f"{where} {lab} kp={keypoint_type(p, points, types)}"
+
+
+def print_table(counts: dict, totals: collections.Counter, what: str, cases: Path, rows: list,
+                json_path: Path | None) -> None:
+    """Print each error class's count and the case F1 median / mean if that class alone were right
+    (``counts``: per case, a Counter of ``'missed …'`` / ``'false …'`` classes and ``_matched``), and
+    write ``rows`` to ``json_path``."""
+    def f1(case: collections.Counter, fixed: str | None) -> float:
+        fn = sum(v for k, v in case.items() if k.startswith("missed"))
+        fp = sum(v for k, v in case.items() if k.startswith("false"))
+        tp = case["_matched"]
+        if fixed is not None and fixed.startswith("missed"):
+            fn, tp = fn - case[fixed], tp + case[fixed]
+        elif fixed is not None:
+            fp -= case[fixed]
+        return 1.0 if tp + fp + fn == 0 else 2 * tp / (2 * tp + fp + fn)
+
+    classes = sorted({k for c in counts.values() for k in c if not k.startswith("_")})
+    print(f"{len(counts)} cases of {cases}: {totals['truth']} scorer {what}s in the ground truth, "
+          f"{totals['output']} in the output, {totals['matched']} matched")
+    print(f"{'class':<34}{'count':>7}  {what} F1 median / mean if right")
+    for cls in [None] + classes:
+        vals = [f1(c, cls) for c in counts.values()]
+        n = sum(c[cls] for c in counts.values()) if cls else 0
+        print(f"{cls or '(as it is)':<34}{n:>7}  {np.median(vals):.3f} / {np.mean(vals):.3f}")
+    if json_path:
+        json_path.write_text(json.dumps(rows, indent=1))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,26 +146,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
         totals.update(truth=len(gj), output=len(oj), matched=int((~missed).sum()))
 
-    def f1(case: collections.Counter, fixed: str | None) -> float:
-        fn = sum(v for k, v in case.items() if k.startswith("missed"))
-        fp = sum(v for k, v in case.items() if k.startswith("false"))
-        tp = case["_matched"]
-        if fixed is not None and fixed.startswith("missed"):
-            fn, tp = fn - case[fixed], tp + case[fixed]
-        elif fixed is not None:
-            fp -= case[fixed]
-        return 1.0 if tp + fp + fn == 0 else 2 * tp / (2 * tp + fp + fn)
-
-    classes = sorted({k for c in counts.values() for k in c if not k.startswith("_")})
-    print(f"{len(counts)} cases of {a.cases}: {totals['truth']} scorer junctions in the ground truth, "
-          f"{totals['output']} in the output, {totals['matched']} matched")
-    print(f"{'class':<34}{'count':>7}  junction F1 median / mean if right")
-    for cls in [None] + classes:
-        vals = [f1(c, cls) for c in counts.values()]
-        n = sum(c[cls] for c in counts.values()) if cls else 0
-        print(f"{cls or '(as it is)':<34}{n:>7}  {np.median(vals):.3f} / {np.mean(vals):.3f}")
-    if a.json:
-        a.json.write_text(json.dumps(rows, indent=1))
+    print_table(counts, totals, "junction", a.cases, rows, a.json)
     return 0
 
 
