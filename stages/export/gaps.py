@@ -23,7 +23,7 @@ TIP_RADII = 2.0
 
 
 def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_deg: float,
-               tangent_px: float) -> list[dict]:
+               tangent_px: float, kept_keypoints: frozenset = frozenset()) -> list[dict]:
     """Join pairs of free curve ends that face each other across a gap of at most a few stroke widths.
 
     A faint or grainy pencil stroke whose ink breaks (a light stretch, a white gap in the grain) is
@@ -43,6 +43,8 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
         Largest angle between each end's outward direction and the gap.
     tangent_px : float
         Arc over which end directions are measured.
+    kept_keypoints : frozenset of int
+        Keypoint indices (the curves' ``end_keypoints``) whose ends are never joined (the user's edits).
 
     Returns
     -------
@@ -52,7 +54,7 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     """
     if len(curves) < 2:
         return curves
-    pts, width, ends, where, only = _curves_free_ends(curves)
+    pts, width, ends, where, only = _curves_free_ends(curves, kept_keypoints)
     if len(ends) < 2:
         return curves
     where = np.array(where)
@@ -92,8 +94,10 @@ def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, i
     return None
 
 
-def _curves_free_ends(curves: list[dict]) -> tuple[list, list, list, list, list]:
-    """The curves' points and widths (0 for none), and :func:`_free_ends` of them."""
+def _curves_free_ends(curves: list[dict], kept_keypoints: frozenset = frozenset()
+                      ) -> tuple[list, list, list, list, list]:
+    """The curves' points and widths (0 for none), and :func:`_free_ends` of them, less the ends at a
+    keypoint of ``kept_keypoints`` (one the user added or retyped: no step joins an artist's keypoint away)."""
     pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
     # The export's own grid, not scipy.spatial: a λ re-run (flow → select → export) then loads no
     # scipy.spatial, whose import cost about a tenth of that re-run.
@@ -101,7 +105,11 @@ def _curves_free_ends(curves: list[dict]) -> tuple[list, list, list, list, list]
     for n, p in enumerate(pts):
         grid.add(n, p)
     width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    return (pts, width, *_free_ends(pts, width, grid))
+    ends, where, only = _free_ends(pts, width, grid)
+    if kept_keypoints:
+        keep = [k for k, (n, e) in enumerate(ends) if _end_keypoint(curves[n], e) not in kept_keypoints]
+        ends, where, only = [ends[k] for k in keep], [where[k] for k in keep], [only[k] for k in keep]
+    return pts, width, ends, where, only
 
 
 def _pairs_within(where: np.ndarray, reach: float) -> list[tuple[int, int]]:
@@ -164,13 +172,11 @@ def join_lone_meetings(curves: list[dict], kept_keypoints: frozenset = frozenset
     """
     if len(curves) < 2:
         return curves
-    _, width, ends, where, only = _curves_free_ends(curves)
+    _, width, ends, where, only = _curves_free_ends(curves, kept_keypoints)
     partner, at = dict(zip(ends, only)), dict(zip(ends, where))
     link: dict = {}
     for a, b in partner.items():
         if b is None or b[0] == a[0] or partner.get(b) != a or a in link or b in link:
-            continue
-        if any(_end_keypoint(curves[n], e) in kept_keypoints for n, e in (a, b)):   # this very meeting
             continue
         # each is the other's only neighbour; their ends themselves meet (not just one end and the
         # other's last stretch of arc)
@@ -191,7 +197,8 @@ def ends_at_keypoints(curve: dict, keypoints: frozenset) -> bool:
 
 
 def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_widths: float,
-                      end_types: tuple = (5,), other_types: tuple = (0, 3, 5)) -> list[dict]:
+                      end_types: tuple = (5,), other_types: tuple = (0, 3, 5),
+                      kept_keypoints: frozenset = frozenset()) -> list[dict]:
     """Join two free curve ends that the ink bridges: one stroke feature found twice.
 
     The detector sometimes finds one sharp corner twice a few pixels apart (two corner keypoints
@@ -218,6 +225,8 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
         Keypoint types (``end_types`` codes) of which at least one of the two ends must be ...
     other_types : tuple of int
         ... and the other one of these.
+    kept_keypoints : frozenset of int
+        As :func:`close_gaps`.
 
     Returns
     -------
@@ -227,7 +236,7 @@ def join_bridged_ends(curves: list[dict], mask: np.ndarray, max_px: float, max_w
     """
     if len(curves) < 2:
         return curves
-    _, width, ends, where, _ = _curves_free_ends(curves)
+    _, width, ends, where, _ = _curves_free_ends(curves, kept_keypoints)
     if len(ends) < 2:
         return curves
     where = np.array(where)

@@ -65,7 +65,7 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   one line: pieces running near-parallel within ``passes.max_gap_widths`` widths over
   ``passes.min_run_widths`` widths become one centred curve (:func:`~stages.export.passes.merge_passes`).
 
-* **Gaps in a stroke** (``gaps``).  Last of all, a faint or grainy stroke whose ink breaks comes out
+* **Gaps in a stroke** (``gaps``).  Then a faint or grainy stroke whose ink breaks comes out
   as curves end to end, each with two free ends where the drawing has one stroke.  Two free ends (no
   other curve within max(2 px, w), or only the other's tip) of different curves at most
   ``max(gaps.max_px, gaps.max_widths · w)`` apart, each pointing at the other within
@@ -246,7 +246,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
                               params.passes.end_slack_widths) + held
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
-                            params.join.tangent_px)
+                            params.join.tangent_px, edited)
     if tidy and params.bridges.enabled and mask is not None:
         # Keypoint types (end_types codes): 0 none, 1 endpoint, 3 junction, 5 corner.
         if params.bridges.corners_only:
@@ -254,7 +254,7 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         else:
             at_one = at_other = (0, 1, 3, 5)
         curves = join_bridged_ends(curves, np.asarray(mask, bool), params.bridges.max_px, params.bridges.max_widths,
-                                   at_one, at_other)
+                                   at_one, at_other, edited)
     if tidy and params.meetings.enabled:
         curves = join_lone_meetings(curves, edited)
     if not internal_is_source(prep.data):
