@@ -130,3 +130,37 @@ class _EndIndex:
         if t != 0:
             return []
         return [o for o in self.synthetic_near(p) if self.state[o][1] < 0]
+
+
+def near_pairs(P: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs i < j of points within ``r`` of each other, by square cells of side ``r``.
+
+    Each point meets the points of its own cell and of four of its neighbours (the other four see it
+    from theirs): time ∝ the pairs within ~2r, linear in the ink for a bounded width. A grid of our
+    own, not a k-d tree: a λ re-run of the export imports no ``scipy.spatial`` (tests/stages/test_export.py).
+    """
+    none = np.zeros(0, np.int64)
+    if len(P) < 2 or r <= 0:
+        return none, none
+    cell = np.floor(P / r).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = int(cell[:, 1].max()) + 3
+    key = (cell[:, 0] + 1) * span + cell[:, 1] + 1
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    out_i, out_j = [], []
+    for dx, dy in ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1)):
+        lo = np.searchsorted(skey, key + dx * span + dy, "left")
+        hi = np.searchsorted(skey, key + dx * span + dy, "right")
+        n = hi - lo
+        if not n.sum():
+            continue
+        src = np.repeat(np.arange(len(P)), n)
+        dst = order[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
+        keep = src < dst if (dx, dy) == (0, 0) else np.ones(len(src), bool)
+        src, dst = src[keep], dst[keep]
+        near = np.hypot(*(P[src] - P[dst]).T) <= r
+        out_i.append(src[near]), out_j.append(dst[near])
+    if not out_i:
+        return none, none
+    return np.concatenate(out_i), np.concatenate(out_j)

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.ndimage import label
 
 from stages.export.corners import join_linked
-from stages.export.end_index import _PointGrid, _within
+from stages.export.end_index import _PointGrid, _within, near_pairs
 from stages.export.curve_ends import end_direction
 from stages.geometry import arc_length
 
@@ -114,11 +114,10 @@ def _curves_free_ends(curves: list[dict], kept_keypoints: frozenset = frozenset(
 
 def _pairs_within(where: np.ndarray, reach: float) -> list[tuple[int, int]]:
     """Index pairs ``(a, b)``, ``a < b``, of the points ``where`` (k, 2) at most ``reach`` apart."""
-    grid = _PointGrid(max(reach, 1e-3))                      # cells of no size: reach may be 0
-    for a, q in enumerate(where):
-        grid.add(a, q[None])
-    return [(a, b) for a in range(len(where)) for b in grid.near(where[a], reach)
-            if b > a and _within(where[b], where[a], reach)[0]]
+    if len(where) < 2:
+        return []
+    i, j = near_pairs(np.asarray(where, np.float64).reshape(-1, 2), max(reach, 1e-9))   # reach may be 0
+    return sorted(zip(np.minimum(i, j).tolist(), np.maximum(i, j).tolist()))
 
 
 def _free_ends(pts: list[np.ndarray], width: list[float], grid: "_PointGrid") -> tuple[list, list, list]:
