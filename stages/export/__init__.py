@@ -12,14 +12,14 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "12"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "13"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
 #                     9: curves whose ends meet alone joined (export.meetings), passes of the pen
 #                        over one line merged into one curve (export.passes);
 #                     10: free ends the ink bridges joined at a corner (export.bridges);
 #                     11: ... never at an endpoint keypoint; 12: passes and bridges together, no meeting
-#                        joined at a keypoint the user edited
+#                        joined at a keypoint the user edited; 13: a loop's overlapping seam closed
 
 
 @dataclass
@@ -103,6 +103,15 @@ class MeetingsConfig:
 
 
 @dataclass
+class LoopsConfig:
+    """``export.loops``: close a loop whose two synthetic ends overlap or cross (its seam)."""
+
+    enabled: bool
+    max_tail_px: float
+    max_tail_widths: float
+
+
+@dataclass
 class BridgesConfig:
     """``export.bridges``: join two free curve ends the ink bridges (one corner found twice)."""
 
@@ -132,6 +141,7 @@ class ExportConfig:
     passes: PassesConfig
     meetings: MeetingsConfig
     bridges: BridgesConfig
+    loops: LoopsConfig
 
     def __post_init__(self) -> None:
         if self.stroke_width <= 0 or not 0 <= self.precision <= 8 or self.bezier_tolerance <= 0:
@@ -145,6 +155,8 @@ class ExportConfig:
                              "0 ≤ passes.max_angle_deg ≤ 90")
         if self.bridges.max_px < 0 or self.bridges.max_widths < 0:
             raise InputError("export config: need bridges.max_px ≥ 0 and bridges.max_widths ≥ 0")
+        if self.loops.max_tail_px < 0 or self.loops.max_tail_widths < 0:
+            raise InputError("export config: need loops.max_tail_px ≥ 0 and loops.max_tail_widths ≥ 0")
 
 
 __getattr__, __dir__ = lazy_names(__name__, {
@@ -153,6 +165,7 @@ __getattr__, __dir__ = lazy_names(__name__, {
     "stages.export.corners": ("join_at_corners", "join_linked"),
     "stages.export.gaps": ("close_gaps", "join_bridged_ends", "join_lone_meetings"),
     "stages.export.passes": ("merge_passes",),
+    "stages.export.loops": ("close_loops",),
     "stages.export.joins": ("collapse_short_links", "join_continuations"),
     "stages.export.spurs": ("attach_spurs",),
     "stages.export.overshoots": ("extend_overshoots",),

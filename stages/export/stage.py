@@ -20,7 +20,7 @@ Output (data of the artifact; the engine writes the files):
 
 The authors export raw polylines only (no Bézier fitting); this is an addition.
 
-Eight clean-ups of the selected curves, each a choice beyond the paper (the authors export the
+Ten clean-ups of the selected curves, each a choice beyond the paper (the authors export the
 selection as it is); measurements in stages/DECISIONS.md.  Valences, and with them the junctions, are
 unchanged by the first four (a curve passing a point counts twice, like two ends).
 
@@ -65,6 +65,12 @@ unchanged by the first four (a curve passing a point counts twice, like two ends
   one line: pieces running near-parallel within ``passes.max_gap_widths`` widths over
   ``passes.min_run_widths`` widths become one centred curve (:func:`~stages.export.passes.merge_passes`).
 
+* **A loop's seam** (``loops``).  A closed stroke with no keypoint on it is cut at a synthetic vertex,
+  and the flow moves its two ends past each other: a tick on a smooth stretch, two free ends where the
+  drawing has none.  A curve whose ends are both synthetic and whose first and last
+  ``max(loops.max_tail_px, loops.max_tail_widths · w)`` of arc come within max(2 px, w) is cut at that
+  closest pair and closed (:func:`~stages.export.loops.close_loops`).
+
 * **Gaps in a stroke** (``gaps``).  Then a faint or grainy stroke whose ink breaks comes out
   as curves end to end, each with two free ends where the drawing has one stroke.  Two free ends (no
   other curve within max(2 px, w), or only the other's tip) of different curves at most
@@ -101,6 +107,7 @@ from stages.export.bezier import fit_with_corners
 from stages.export.corners import join_at_corners
 from stages.export.gaps import close_gaps, ends_at_keypoints, join_bridged_ends, join_lone_meetings
 from stages.export.joins import collapse_short_links, join_continuations
+from stages.export.loops import close_loops
 from stages.export.overshoots import extend_overshoots
 from stages.export.passes import merge_passes
 from stages.export.spurs import attach_spurs
@@ -244,6 +251,8 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         curves = merge_passes([c for c in curves if not ends_at_keypoints(c, edited)], params.passes.max_gap_widths,
                               params.passes.min_run_widths, params.passes.max_angle_deg,
                               params.passes.end_slack_widths) + held
+    if tidy and params.loops.enabled:
+        curves = close_loops(curves, params.loops.max_tail_px, params.loops.max_tail_widths)
     if tidy and params.gaps.enabled:
         curves = close_gaps(curves, params.gaps.max_px, params.gaps.max_widths, params.gaps.max_turn_deg,
                             params.join.tangent_px, edited)
