@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from stages.errors import InputError
 from stages.lazy import lazy_names
 
-STAGE_VERSION = "13"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
+STAGE_VERSION = "14"  # 4: no curve shorter than min_length_px; 5: curves joined through sharp corners;
 #                     6: curves mapped back from a supersampled prep; 7: gaps in a stroke closed;
 #                     8: a gap closes between ends closer than the free radius (only each other near);
 #                     9: curves whose ends meet alone joined (export.meetings), passes of the pen
@@ -20,6 +20,8 @@ STAGE_VERSION = "13"  # 4: no curve shorter than min_length_px; 5: curves joined
 #                     10: free ends the ink bridges joined at a corner (export.bridges);
 #                     11: ... never at an endpoint keypoint; 12: passes and bridges together, no meeting
 #                        joined at a keypoint the user edited; 13: a loop's overlapping seam closed
+#                        (export.loops); 14: passes that close up into one end merged to that end,
+#                        where one goes on past the slack and both stay beside each other to their ends
 
 
 @dataclass

@@ -14,7 +14,11 @@ Two curves are merged only where, at each end of the shared stretch, at most one
 more than ``end_slack_widths`` widths (two lines that come together and part again — a narrow V, two
 strokes touching along a stretch — are different lines meeting), and the one that stops there ends on
 the other (within 0.75 widths): a short stroke along a contour, a hatch beside it, or a stroke's own
-flick that ends beside the line keeps its end. Runs after the corner joins, on whole strokes (before,
+flick that ends beside the line keeps its end. An end where the two close up counts as both ending
+there: what is left of each past the stretch stays within ``max_gap_widths`` of the other curve and the
+two end within that of each other (passes between the same two keypoints, converging on them more
+steeply than near-parallel; a stretch cut in two by a kink of one pass) — that piece is their weighted
+mean. Runs after the corner joins, on whole strokes (before,
 the two passes' pieces ended on different corner keypoints and no longer chained); the gap closing
 comes after.
 
@@ -155,14 +159,35 @@ def _ramp(arc_run: np.ndarray, lam_start: float, lam_end: float, lam_mid: float,
     return np.where(x1 < x0, lam_end + (lam_mid - lam_end) * x1, lam)
 
 
+def _beside(piece: np.ndarray, other: np.ndarray, gap: float) -> bool:
+    """Whether every point of ``piece`` (resampled ``_STEP_PX`` apart) lies within ``gap`` of ``other``'s samples."""
+    p, _ = resample_uniform(piece, _STEP_PX)
+    for k in range(0, len(p), 256):            # chunks: a bounded (256 × len(other)) distance table
+        d = np.hypot(*(p[k:k + 256, None, :] - other[None, :, :]).transpose(2, 0, 1)).min(1)
+        if np.any(d > gap + _STEP_PX):
+            return False
+    return True
+
+
+def _blend(pa: np.ndarray, pb: np.ndarray, mid: float) -> np.ndarray:
+    """Two pieces' weighted mean (``mid`` the share of the second) at equal fractions of their arcs."""
+    sa, sb = arc_length(pa), arc_length(pb)
+    n = max(int(np.ceil(max(sa[-1], sb[-1]) / _STEP_PX)) + 1, 2)
+    u = np.linspace(0.0, 1.0, n)
+    return (1.0 - mid) * point_at_arc(pa, sa, u * sa[-1]) + mid * point_at_arc(pb, sb, u * sb[-1])
+
+
 def _merge_pair(ca: dict, cb: dict, pa: np.ndarray, sa: np.ndarray, La: float, pb: np.ndarray, sb: np.ndarray,
-                q: np.ndarray, na: int, nb: int, w: float, slack: float, attach: float):
+                q: np.ndarray, na: int, nb: int, w: float, slack: float, attach: float, gap: float):
     """Two passes merged along a run, or None when they are two lines that meet.
 
     ``pa``/``sa`` are a's samples and arcs along the run (a is ``La`` long), ``pb``/``sb`` all of b's
     samples and arcs, ``q`` the arc on b beside each of a's samples; ``na``/``nb`` the passes each
     curve stands for already (the centre is their weighted mean); an end within ``attach`` of the
-    other curve ends on it.
+    other curve ends on it. At an end of the run where what is left of both curves stays within
+    ``gap`` of the other curve and the two end within ``gap`` of each other (the passes close up into
+    one end, e.g. at a keypoint both reach, converging there more steeply than near-parallel), the
+    two are one line to that end: their weighted mean.
     """
     Lb = float(sb[-1])
     if q[-1] < q[0]:                           # b runs the other way: turn it round
@@ -173,16 +198,29 @@ def _merge_pair(ca: dict, cb: dict, pa: np.ndarray, sa: np.ndarray, La: float, p
     if not 0.6 <= (run_b[1] - run_b[0]) / max(run_a[1] - run_a[0], 1e-9) <= 1.6:
         return None                            # not side by side all along (b folds or jumps)
     before, after = (run_a[0], run_b[0]), (La - run_a[1], Lb - run_b[1])
-    if min(before) > slack or min(after) > slack:
-        return None                            # both go on past the shared stretch: lines that meet
-    if any(max(left) > slack and min(left) > _STOP_WIDTHS * w for left in (before, after)):
-        return None                            # one goes on, the other leaves it to end apart: a spur
     pts_a, pts_b = np.asarray(ca["points"], np.float64), np.asarray(cb["points"], np.float64)
+    rest = [(_cut(pts_a, 0.0, run_a[0]), _cut(pts_b, 0.0, run_b[0])),
+            (_cut(pts_a, run_a[1], La), _cut(pts_b, run_b[1], Lb))]
+    full_a = None
+    together = []
+    for side, (ra, rb) in enumerate(rest):
+        far = 0 if side == 0 else -1
+        # Only where one of them goes on past the slack: both within it, the ends meet as they did.
+        ok = max(before if side == 0 else after) > slack and np.hypot(*(ra[far] - rb[far])) <= gap
+        if ok:
+            full_a = resample_uniform(pts_a, _STEP_PX)[0] if full_a is None else full_a
+            ok = _beside(ra, pb, gap) and _beside(rb, full_a, gap)
+        together.append(bool(ok))
+    if any(min(left) > slack and not tog for left, tog in zip((before, after), together)):
+        return None                            # both go on past the shared stretch: lines that meet
+    if any(max(left) > slack and min(left) > _STOP_WIDTHS * w and not tog
+           for left, tog in zip((before, after), together)):
+        return None                            # one goes on, the other leaves it to end apart: a spur
     # Where one curve goes on past the shared stretch, the other must end on it (a braid of touching
     # passes, a pass that stops short on the line): one that ends beside it, apart, keeps its end — a
     # short stroke along a contour, a hatch beside it, a stroke's own flick (validation split).
     for side, left in ((0, before), (1, after)):
-        if max(left) > slack:
+        if max(left) > slack and not together[side]:
             stops, goes_on = (pts_a, pts_b) if left[1] > left[0] else (pts_b, pts_a)
             if _distance_to_polyline(stops[0 if side == 0 else -1], goes_on) > attach:
                 return None
@@ -194,13 +232,17 @@ def _merge_pair(ca: dict, cb: dict, pa: np.ndarray, sa: np.ndarray, La: float, p
     # Where both passes end near each other the line ends centred: the longer's last bit is shifted
     # onto the centre.
     mid = nb / (na + nb)
-    head_ends, tail_ends = max(before) <= slack, max(after) <= slack
+    head_ends, tail_ends = max(before) <= slack or together[0], max(after) <= slack or together[1]
     lam = _ramp(sa - sa[0], mid if head_ends else float(head_from_b), mid if tail_ends else float(tail_from_b),
                 mid, max(min(2.0 * w, (run_a[1] - run_a[0]) / 3.0), 1e-9))
     centre = pa + lam[:, None] * (point_at_arc(pb, sb, q) - pa)
-    if head_ends:
+    if together[0]:
+        head = _blend(*rest[0], mid)
+    elif head_ends:
         head = head + (centre[0] - head[-1])
-    if tail_ends:
+    if together[1]:
+        tail = _blend(*rest[1], mid)
+    elif tail_ends:
         tail = tail + (centre[-1] - tail[0])
     ends = [(cb if head_from_b else ca, 0), (cb if tail_from_b else ca, 1)]
     pts = np.vstack([head[:-1], centre, tail[1:]])
@@ -285,7 +327,7 @@ def merge_passes(curves: list[dict], max_gap_widths: float, min_run_widths: floa
                 lo, hi = offsets[b], offsets[b + 1]
                 new = _merge_pair(curves[a], curves[b], P[ia], arc[ia], float(arc[offsets[a + 1] - 1]),
                                   P[lo:hi], arc[lo:hi], q, counts[a], counts[b], w, end_slack_widths * w,
-                                  _ATTACH_WIDTHS * w)
+                                  _ATTACH_WIDTHS * w, max_gap_widths * w)
             if new is None:
                 continue
             curves[a] = new

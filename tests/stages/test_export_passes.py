@@ -166,3 +166,48 @@ def test_a_generated_doubled_stroke_gives_one_curve():
     d = synthetic.Drawing(grey=grey, strokes=[a, b], width=w, keypoints=kps)
     curves = _vectorise(d)
     assert len(curves) == 1
+
+
+def _eye(rise_px: float, top: float):
+    """A straight pass and one that leaves its start at ``rise_px`` of run, runs ``top`` px beside it and comes back."""
+    x = np.linspace(10, 110, 101)
+    y = 50 + top * np.clip(np.minimum(x - 10, 110 - x) / rise_px, 0, 1)
+    return _curve(0, _line(10, 110, 50, 101), (5, 5), (1, 2)), _curve(1, np.c_[x, y][::-1], (5, 5), (2, 1))
+
+
+def test_passes_that_close_up_at_both_ends_are_one_curve():
+    # Two passes between the same two keypoints, 1.5 widths apart, converging there steeper than
+    # near-parallel over more than end_slack_widths widths (seen on the overdrawn cases: an "eye").
+    a, b = _eye(10.0, 3.0)
+    out = _merge([a, b])
+    assert len(out) == 1 and sorted(out[0]["parts"]) == [0, 1]
+    pts = out[0]["points"]
+    assert {tuple(np.round(pts[0])), tuple(np.round(pts[-1]))} == {(10.0, 50.0), (110.0, 50.0)}
+    middle = pts[(pts[:, 0] > 25) & (pts[:, 0] < 95)]
+    np.testing.assert_allclose(middle[:, 1], 51.5, atol=0.05)
+    assert sorted(out[0]["end_keypoints"]) == [1, 2]
+
+
+def test_a_lens_whose_sides_part_stays_two_curves():
+    # Two lines from one point to another that run near-parallel in the middle but part by 3 widths
+    # on the way there: different lines meeting at both ends.
+    x = np.linspace(10, 110, 101)
+    y = 50 + np.interp(x, [10, 30, 45, 75, 90, 110], [0, 6, 3, 3, 6, 0])
+    curves = [_curve(0, _line(10, 110, 50, 101), (5, 5)), _curve(1, np.c_[x, y], (5, 5))]
+    assert len(_merge(curves)) == 2
+
+
+@pytest.mark.slow
+def test_a_generated_stroke_drawn_twice_between_two_points_is_one_open_curve():
+    """Two passes of the pen from one point to another, 1.7 widths apart between: one curve, end to end."""
+    from test_export import _vectorise
+
+    w = 3.0
+    a = np.array([[14.0, 40.0], [40.0, 33.0], [80.0, 33.0], [110.0, 44.0]])
+    b = np.array([[14.0, 40.0], [24.0, 41.5], [40.0, 38.2], [80.0, 38.0], [100.0, 46.0], [110.0, 44.0]])
+    grey = synthetic.render((80, 128), [a, b], w)
+    d = synthetic.Drawing(grey=grey, strokes=[a, b], width=w, keypoints=[(*a[0], 1), (*a[-1], 1)])
+    curves = _vectorise(d)
+    assert len(curves) == 1                              # before: the two passes joined into a loop
+    ends = sorted(map(tuple, np.round(curves[0][[0, -1]])))
+    assert ends == [(14.0, 40.0), (110.0, 44.0)]
