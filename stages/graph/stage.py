@@ -50,6 +50,7 @@ the drawing.
 from __future__ import annotations
 
 import time
+from itertools import pairwise
 
 import numpy as np
 
@@ -58,7 +59,12 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.graph import GraphConfig, cleanup, ends
-from stages.graph.raw_graph import RawGraph, raw_graph, streamline_edges, take_cross_sections
+from stages.graph.raw_graph import (
+    RawGraph,
+    raw_graph,
+    streamline_edges,
+    take_cross_sections,
+)
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
 
@@ -146,7 +152,7 @@ def stored_streamlines(lines: Streamlines, every: int) -> tuple[np.ndarray, np.n
     # whole curves per chunk: the first curve of each chunk of about STORED_CHUNK kept samples
     cuts = np.unique(np.r_[0, np.searchsorted(offsets, np.arange(0, offsets[-1], STORED_CHUNK), side="right") - 1,
                            len(length)])
-    for c0, c1 in zip(cuts[:-1], cuts[1:]):
+    for c0, c1 in pairwise(cuts):
         p, o0 = per[c0:c1], offsets[c0]
         rank = np.arange(o0, offsets[c1]) - np.repeat(offsets[c0:c1], p)
         take = np.repeat(lines.start[c0:c1].astype(np.int64), p) + np.minimum(rank * every,

@@ -156,7 +156,7 @@ def test_trace_and_sections_copy_no_page_sized_field():
 
 def test_stored_streamlines_index_in_chunks():
     """The stored subsample's index is built a chunk of curves at a time (:data:`STORED_CHUNK`): the whole
-    index and its int64 temporaries were the graph's peak on a 4x4 page.  The chunks give the same samples."""
+    index and its int64 temporaries were the graph's peak on a 4x4 page."""
     from stages.graph import stage
 
     rng = np.random.default_rng(7)
@@ -167,12 +167,25 @@ def test_stored_streamlines_index_in_chunks():
     lines = Streamlines(xy=xy, tangent=xy, curve=np.repeat(np.arange(len(length)), length).astype(np.int32),
                         start=start, length=length, end_reason=np.zeros((len(length), 2), np.int8))
     tracemalloc.start()
-    s_xy, s_off = stage.stored_streamlines(lines, 1)
+    s_xy, _ = stage.stored_streamlines(lines, 1)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     np.testing.assert_array_equal(s_xy, xy)
-    # the kept samples themselves (8 bytes each) and one chunk's temporaries; the whole index was 6 int64s a sample
-    assert peak < s_xy.nbytes + 80 * stage.STORED_CHUNK
+    # the kept samples themselves (8 bytes each) and one chunk's temporaries of 2**20 samples; the whole
+    # index took 6 int64s a sample (6 M samples here)
+    assert peak < s_xy.nbytes + 80 * 2**20
+
+
+def test_stored_streamlines_chunks_give_the_same_samples():
+    """Any chunk size (curves are never split) gives the same stored subsample."""
+    from stages.graph import stage
+
+    rng = np.random.default_rng(8)
+    length = rng.integers(0, 60, 3000)
+    start = np.r_[0, np.cumsum(length)[:-1]]
+    xy = rng.random((2, int(length.sum())), dtype=np.float32).T
+    lines = Streamlines(xy=xy, tangent=xy, curve=np.repeat(np.arange(len(length)), length).astype(np.int32),
+                        start=start, length=length, end_reason=np.zeros((len(length), 2), np.int8))
     old_chunk = stage.STORED_CHUNK
     try:
         for chunk in (1, 7, 1000):
