@@ -112,21 +112,31 @@ def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
     """
     if order is None:
         order = member_order(member_curve, member_param)
+    # each temporary is dropped once read: on a page's millions of crossings these sorts were the
+    # graph's peak (stages/DECISIONS.md, graph)
     v = member_vertex[order]
     c = member_curve[order]
-    link = (c[1:] == c[:-1]) & (v[1:] != v[:-1])
+    link = c[1:] == c[:-1]
+    link &= v[1:] != v[:-1]
     a, b, cc = v[:-1][link], v[1:][link], c[:-1][link]
-    e = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
-    if len(e) == 0:
+    del v, c, link
+    if len(a) == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    lo = np.minimum(a, b)
+    hi = np.maximum(a, b, out=b)
+    del a
     # unique edges, keeping the lowest streamline id: `cc` is already ascending (the crossings are in
     # streamline order), so a stable sort by the edge alone keeps it ascending within each edge (the
-    # same permutation as lexsort((cc, e1, e0)), at one int64 key instead of three)
-    o = np.argsort(e[:, 0].astype(np.int64) * (int(e[:, 1].max()) + 1) + e[:, 1], kind="stable")
-    e, cc = e[o], cc[o]
-    first = np.ones(len(e), bool)
-    first[1:] = np.any(e[1:] != e[:-1], axis=1)
-    return e[first].astype(np.int64), cc[first].astype(np.int64)
+    # same permutation as lexsort((cc, e1, e0)), at one int64 key instead of three; the key is one to
+    # one with the edge, so equal keys are equal edges)
+    key = lo.astype(np.int64) * (int(hi.max()) + 1) + hi
+    o = np.argsort(key, kind="stable")
+    key = key[o]
+    first = np.ones(len(o), bool)
+    first[1:] = key[1:] != key[:-1]
+    del key
+    o = o[first]
+    return np.stack([lo[o], hi[o]], axis=1).astype(np.int64), cc[o].astype(np.int64)
 
 
 def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
@@ -166,6 +176,32 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
     -------
     RawGraph
     """
+    return raw_graph(take_cross_sections(c0, c2, band, singular, lines, step=step, station_spacing=station_spacing,
+                                         cover_factor=cover_factor, min_station_gap=min_station_gap,
+                                         max_gap=max_gap, max_section_length=max_section_length,
+                                         ambiguity=ambiguity, tie=tie, lane_pad=lane_pad))
+
+
+def take_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
+                        **params) -> tuple:
+    """The cross-sections' kernel alone (:func:`build_cross_sections` without the edges): its outputs read
+    nothing of ``lines`` any more, so a caller may drop the samples before :func:`raw_graph` sorts the
+    crossings (a page's samples and those sorts were the graph's peak together).
+
+    Parameters
+    ----------
+    c0, c2, band, singular, lines
+        As :func:`build_cross_sections`.
+    **params
+        ``step``, ``station_spacing``, ``cover_factor``, ``min_station_gap``, ``max_gap``,
+        ``max_section_length``, ``ambiguity``, ``tie``, ``lane_pad`` as :func:`build_cross_sections`.
+
+    Returns
+    -------
+    tuple
+        The kernel's outputs, for :func:`raw_graph`.
+    """
+    step, station_spacing = params["step"], params["station_spacing"]
     band = np.ascontiguousarray(band, dtype=np.bool_)
     c0 = field_on_band(c0, band)
     c2 = field_on_band(c2, band)
@@ -175,13 +211,29 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
     ty = np.ascontiguousarray(lines.tangent[:, 1])
     order = np.argsort(-lines.length, kind="stable").astype(np.int64)
     spacing = max(2, int(round(station_spacing / step)))
-    out = _build_sections(
+    return _build_sections(
         c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.curve,
         lines.start, lines.length, order, float(step), spacing,
-        float(cover_factor * station_spacing / step), max(1, int(round(min_station_gap / step))),
-        float(max_gap), max(1, int(math.ceil(max_section_length / step))), float(ambiguity), float(tie),
-        float(lane_pad))
-    xy, width, root, flags, _seed, mv, mc, mp, n_fail = out
+        float(params["cover_factor"] * station_spacing / step),
+        max(1, int(round(params["min_station_gap"] / step))), float(params["max_gap"]),
+        max(1, int(math.ceil(params["max_section_length"] / step))), float(params["ambiguity"]),
+        float(params["tie"]), float(params["lane_pad"]))
+
+
+def raw_graph(sections: tuple) -> RawGraph:
+    """The raw graph of the cross-sections' kernel outputs (:func:`take_cross_sections`): the crossings
+    sorted along the streamlines (:func:`member_order`) and the edges between consecutive ones.
+
+    Parameters
+    ----------
+    sections : tuple
+        :func:`take_cross_sections`' outputs.
+
+    Returns
+    -------
+    RawGraph
+    """
+    xy, width, root, flags, _seed, mv, mc, mp, n_fail = sections
     order = member_order(mc, mp)
     edges, ecurve = streamline_edges(mv, mc, mp, order)
     return RawGraph(xy=xy, width=width, root=root, flags=flags, member_vertex=mv, member_curve=mc,

@@ -50,6 +50,7 @@ the drawing.
 from __future__ import annotations
 
 import time
+from itertools import pairwise
 
 import numpy as np
 
@@ -58,12 +59,18 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.graph import GraphConfig, cleanup, ends
-from stages.graph.raw_graph import RawGraph, build_cross_sections, streamline_edges
+from stages.graph.raw_graph import (
+    RawGraph,
+    raw_graph,
+    streamline_edges,
+    take_cross_sections,
+)
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
 
-def _flag_singular_curve_ends(raw: RawGraph, lines: Streamlines, reach: float) -> np.ndarray:
-    """Flag the first/last vertex of every streamline that ended on a singular pixel (reference)."""
+def _flag_singular_curve_ends(raw: RawGraph, length: np.ndarray, end_reason: np.ndarray, reach: float) -> np.ndarray:
+    """Flag the first/last vertex of every streamline that ended on a singular pixel (reference);
+    ``length`` and ``end_reason`` as :class:`~stages.graph.trace.Streamlines`'."""
     flags = raw.flags.copy()
     if len(raw.member_vertex) == 0:
         return flags
@@ -72,10 +79,10 @@ def _flag_singular_curve_ends(raw: RawGraph, lines: Streamlines, reach: float) -
     first = np.r_[True, c[1:] != c[:-1]]
     last = np.r_[c[1:] != c[:-1], True]
     for sel, end, near in ((first, 0, lambda p, cc: p <= reach),
-                           (last, 1, lambda p, cc: lines.length[cc] - 1 - p <= reach)):
+                           (last, 1, lambda p, cc: length[cc] - 1 - p <= reach)):
         rows = order[sel]
         cc = raw.member_curve[rows]
-        hit = (lines.end_reason[cc, end] == SINGULAR) & near(raw.member_param[rows], cc)
+        hit = (end_reason[cc, end] == SINGULAR) & near(raw.member_param[rows], cc)
         flags[raw.member_vertex[rows[hit]]] |= 1
     return flags
 
@@ -117,7 +124,9 @@ def stored_streamlines(lines: Streamlines, every: int) -> tuple[np.ndarray, np.n
     """The streamlines subsampled for storage: every ``every``-th sample of each curve and its last one.
 
     The kept samples are indexed per curve, not picked by a mask over all samples: a mask took four
-    int64 temporaries a sample (1.1 GB on a 4x4 page), this takes one index a kept sample.
+    int64 temporaries a sample (1.1 GB on a 4x4 page), this takes one index a kept sample, and that
+    one in chunks of :data:`STORED_CHUNK` kept samples (the whole index and its five int64 temporaries
+    were the graph's peak on a 4x4 page, +270 MB).
 
     Parameters
     ----------
@@ -139,9 +148,21 @@ def stored_streamlines(lines: Streamlines, every: int) -> tuple[np.ndarray, np.n
     per = np.where(length > 0, -(-(length - 1) // every) + 1, 0)
     offsets = np.zeros(len(length) + 1, np.int64)
     np.cumsum(per, out=offsets[1:])
-    rank = np.arange(offsets[-1]) - np.repeat(offsets[:-1], per)
-    take = np.repeat(lines.start.astype(np.int64), per) + np.minimum(rank * every, np.repeat(length - 1, per))
-    return np.ascontiguousarray(lines.xy[take], dtype=np.float32), offsets
+    xy = np.empty((int(offsets[-1]), 2), np.float32)
+    # whole curves per chunk: the first curve of each chunk of about STORED_CHUNK kept samples
+    cuts = np.unique(np.r_[0, np.searchsorted(offsets, np.arange(0, offsets[-1], STORED_CHUNK), side="right") - 1,
+                           len(length)])
+    for c0, c1 in pairwise(cuts):
+        p, o0 = per[c0:c1], offsets[c0]
+        rank = np.arange(o0, offsets[c1]) - np.repeat(offsets[c0:c1], p)
+        take = np.repeat(lines.start[c0:c1].astype(np.int64), p) + np.minimum(rank * every,
+                                                                               np.repeat(length[c0:c1] - 1, p))
+        xy[o0:offsets[c1]] = lines.xy[take]
+    return xy, offsets
+
+
+#: Kept samples indexed at a time by :func:`stored_streamlines` (its int64 temporaries: 48 bytes each).
+STORED_CHUNK = 1 << 20
 
 
 def _drop_small(xy, width, edges, min_area):
@@ -150,7 +171,7 @@ def _drop_small(xy, width, edges, min_area):
 
 
 def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarray, roots: np.ndarray,
-                singular: np.ndarray, conf: GraphConfig) -> tuple[dict, dict, Streamlines]:
+                singular: np.ndarray, conf: GraphConfig) -> tuple[dict, dict]:
     """The whole stage on plain arrays.
 
     Parameters
@@ -173,8 +194,6 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
         The artifact arrays (stages/INTERFACES.md "graph").
     data : dict
         Counts, timings and clean-up statistics.
-    lines : Streamlines
-        The full-resolution streamlines (for tests and debugging).
     """
     tc, sc, cc = conf.trace, conf.sections, conf.cleanup
     timings = {}
@@ -185,17 +204,26 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
                               merge_cos=tc.merge_cos, self_merge_lag=tc.self_merge_lag, tie=tc.tie)
     t1 = time.perf_counter()
     timings["trace_s"] = t1 - t0
-    raw = build_cross_sections(c0, c2, band, singular, lines, step=tc.step, station_spacing=sc.station_spacing,
-                               cover_factor=sc.cover_factor, min_station_gap=sc.min_station_gap,
-                               max_gap=sc.max_gap, max_section_length=sc.max_section_length,
-                               ambiguity=sc.ambiguity, tie=tc.tie, lane_pad=sc.lane_pad)
+    # the samples end with the cross-sections' kernel: the stored subsample is taken first, and the
+    # samples (20 bytes each, 0.7 GB on a 4x4 page) are dropped before the crossings are sorted and the
+    # clean-up runs (held to the end, they and those sorts made the stage's peak)
+    s_xy, s_off = stored_streamlines(lines, conf.store_every)
+    sections = take_cross_sections(c0, c2, band, singular, lines, step=tc.step,
+                                   station_spacing=sc.station_spacing, cover_factor=sc.cover_factor,
+                                   min_station_gap=sc.min_station_gap, max_gap=sc.max_gap,
+                                   max_section_length=sc.max_section_length, ambiguity=sc.ambiguity,
+                                   tie=tc.tie, lane_pad=sc.lane_pad)
+    stats = {"streamlines": int(len(lines.start)), "streamline_samples": int(len(lines.xy))}
+    length, end_reason = lines.length, lines.end_reason
+    del lines
+    raw = raw_graph(sections)
+    del sections
     t2 = time.perf_counter()
     timings["sections_s"] = t2 - t1
-    stats = {"streamlines": int(len(lines.start)), "streamline_samples": int(len(lines.xy)),
-             "raw_vertices": int(len(raw.xy)), "raw_edges": int(len(raw.edges)),
-             "failed_stations": raw.n_failed}
+    stats.update({"raw_vertices": int(len(raw.xy)), "raw_edges": int(len(raw.edges)),
+                  "failed_stations": raw.n_failed})
 
-    flags = _flag_singular_curve_ends(raw, lines, reach=2 * sc.station_spacing / tc.step)
+    flags = _flag_singular_curve_ends(raw, length, end_reason, reach=2 * sc.station_spacing / tc.step)
     # 1. near-duplicate cross-sections
     keep, mv = cleanup.merge_close_vertices(raw.xy, raw.root, raw.member_vertex, raw.member_curve,
                                             raw.member_param, raw.edges, cc.merge_distance, cc.merge_min_cos)
@@ -276,8 +304,6 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     bounds = np.searchsorted(pv, np.arange(len(final) + 1))
     members, members_off = pcurve.astype(np.int32), bounds.astype(np.int64)
 
-    s_xy, s_off = stored_streamlines(lines, conf.store_every)
-
     arrays = {
         "vertex_xy": xy[final].astype(np.float64),
         "vertex_width": w.astype(np.float64),
@@ -296,7 +322,7 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
                   "degree_histogram": np.bincount(deg).tolist() if len(deg) else [],
                   "singular_vertices": int((arrays["vertex_flags"] & 1).sum())})
     data = {"counts": stats, "timings": {k: round(v, 4) for k, v in timings.items()}, "notes": notes}
-    return arrays, data, lines
+    return arrays, data
 
 
 def run(cfg: dict, **inputs: Artifact) -> Artifact:
@@ -336,6 +362,6 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
     if not (np.all(np.isfinite(c0)) and np.all(np.isfinite(c2)) and np.all(np.isfinite(roots))):
         raise InputError("graph: field contains NaN or infinite values")
     t = time.perf_counter()
-    arrays, data, _ = build_graph(grey, band, c0, c2, roots, singular, conf)
+    arrays, data = build_graph(grey, band, c0, c2, roots, singular, conf)
     data["timings"]["total_s"] = round(time.perf_counter() - t, 4)
     return Artifact(arrays=arrays, data=data, notes=data.pop("notes"))
