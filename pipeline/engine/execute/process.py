@@ -52,8 +52,57 @@ HEAP_TRIM_BYTES = 32 * 2**20
 #: The keypoints child's trim threshold (:func:`keep_network_memory`): more than the network's
 #: activations freed at once in one pass of a drawing of ``keypoints.single_pass_max`` px.
 NETWORK_TRIM_BYTES = 2**30
+#: Freed heap a process may carry from one task into the next (:func:`return_freed_memory`): more than
+#: the ~85–150 MB a 512-px drawing's stage leaves, so that a batch's tasks still reuse theirs; less than
+#: the 364 MB the field of a 6-Mpx page (4×4 scans) left in the main process, on top of which the graph
+#: peaked (stages/DECISIONS.md, engine).
+FREED_KEEP_BYTES = 192 * 2**20
 _HEAP_TUNED = False
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4      # glibc's <malloc.h>
+
+
+@functools.lru_cache(maxsize=1)
+def _glibc():
+    """glibc's ``malloc_trim`` and ``mallinfo2`` (free bytes of every arena), or None where the C library
+    has them not (not glibc, glibc before 2.33); looked up once."""
+    import ctypes
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                                         "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    try:
+        libc = ctypes.CDLL(None)
+        trim, info = libc.malloc_trim, libc.mallinfo2
+    except (OSError, AttributeError, TypeError):
+        return None
+    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    info.argtypes, info.restype = (), MallInfo2
+    return trim, info
+
+
+def freed_heap_bytes() -> int | None:
+    """Bytes of this process's heap that malloc holds free (every arena's), None where unknown."""
+    if (glibc := _glibc()) is None:
+        return None
+    return int(glibc[1]().fordblks)
+
+
+def return_freed_memory(keep: int = FREED_KEEP_BYTES) -> bool:
+    """Give the heap's free pages back to the system (glibc's ``malloc_trim``) when malloc holds more
+    than ``keep`` bytes free; True when it did.
+
+    Called after each task: :func:`reuse_freed_memory` keeps freed arrays in the heap for the next ones,
+    but a task on another thread allocates from another arena and cannot reuse them, and a stage of a
+    large drawing may leave hundreds of MB free there that the next stage's peak then sits on (the
+    field of a 6-Mpx page: 364 MB under the graph's peak). Below ``keep``, nothing (a small drawing's
+    tasks keep reusing their heap). ``malloc_trim`` also returns free pages inside the heap, not only at
+    its top.
+    """
+    if (glibc := _glibc()) is None or glibc[1]().fordblks <= keep:
+        return False
+    glibc[0](0)
+    return True
 
 
 @functools.lru_cache(maxsize=1)
