@@ -53,11 +53,13 @@ HEAP_TRIM_BYTES = 32 * 2**20
 #: activations freed at once in one pass of a drawing of ``keypoints.single_pass_max`` px.
 NETWORK_TRIM_BYTES = 2**30
 #: Freed heap a process may carry from one task into the next (:func:`return_freed_memory`): more than
-#: the ~85–150 MB a 512-px drawing's stage leaves, so that a batch's tasks still reuse theirs; less than
+#: the 17–122 MB any stage left in the main process on two 512-px drawings and the 500×753 elephant
+#: (one in-process run), so that their tasks still reuse it; less than
 #: the 364 MB the field of a 6-Mpx page (4×4 scans) left in the main process, on top of which the graph
 #: peaked (stages/DECISIONS.md, engine).
 FREED_KEEP_BYTES = 192 * 2**20
 _HEAP_TUNED = False
+_FREED_KEEP = [FREED_KEEP_BYTES]   # this process's; the keypoints child keeps its network's heap
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4      # glibc's <malloc.h>
 
 
@@ -88,9 +90,10 @@ def freed_heap_bytes() -> int | None:
     return int(glibc[1]().fordblks)
 
 
-def return_freed_memory(keep: int = FREED_KEEP_BYTES) -> bool:
+def return_freed_memory(keep: int | None = None) -> bool:
     """Give the heap's free pages back to the system (glibc's ``malloc_trim``) when malloc holds more
-    than ``keep`` bytes free; True when it did.
+    than ``keep`` bytes free (default :data:`FREED_KEEP_BYTES`, or :data:`NETWORK_TRIM_BYTES` after
+    :func:`keep_network_memory`); True when it did.
 
     Called after each task: :func:`reuse_freed_memory` keeps freed arrays in the heap for the next ones,
     but a task on another thread allocates from another arena and cannot reuse them, and a stage of a
@@ -99,7 +102,7 @@ def return_freed_memory(keep: int = FREED_KEEP_BYTES) -> bool:
     tasks keep reusing their heap). ``malloc_trim`` also returns free pages inside the heap, not only at
     its top.
     """
-    if (glibc := _glibc()) is None or glibc[1]().fordblks <= keep:
+    if (glibc := _glibc()) is None or glibc[1]().fordblks <= (_FREED_KEEP[0] if keep is None else keep):
         return False
     glibc[0](0)
     return True
@@ -140,6 +143,9 @@ def keep_network_memory() -> None:
     passes after it (a multi-drawing run, a large drawing's tiles) reuse it. The child's memory stays
     at its peak until it exits."""
     reuse_freed_memory()
+    # a 512-px drawing's pass leaves ~340 MB free: trimmed after each keypoints task, the next
+    # drawing's pass would fault it in again
+    _FREED_KEEP[0] = NETWORK_TRIM_BYTES
     if (mallopt := _mallopt()) is not None:
         mallopt(_M_MMAP_MAX, 0)
         mallopt(_M_TRIM_THRESHOLD, NETWORK_TRIM_BYTES)
