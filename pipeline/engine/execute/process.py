@@ -3,7 +3,8 @@
 Speed and memory settings measured on this project's 2-core machine (stages/DECISIONS.md, engine):
 full garbage collections made rare (:func:`quiet_full_collections`), freed arrays' memory kept for the
 next ones instead of mapped and faulted in again (:func:`reuse_freed_memory`, and for the keypoints
-network :func:`keep_network_memory`), one thread per task for torch and numba when two tasks share
+network :func:`keep_network_memory`) but given back after a task that left more than
+:data:`FREED_KEEP_BYTES` free (:func:`return_freed_memory`), one thread per task for torch and numba when two tasks share
 the cores (:func:`pin_threads`), and SIGINT held while worker processes start so that Ctrl-C is
 reported once, by the driver (:func:`sigint_held`). Standard library only: ``polyvec``'s launcher
 imports it (:data:`THREAD_ENV`) before it forks the keypoints child (:mod:`.early_child`).
