@@ -92,7 +92,8 @@ def _cell_index(sx, sy, band):
                 bidx[i * W + j] = -1
     n = len(sx)
     nc = nb * SUB * SUB
-    cell_start = np.zeros(nc + 1, np.int64)
+    # int32 like the sample ids it points to (int64 was 64 bytes a band pixel, 36 MB on a 4x4 page)
+    cell_start = np.zeros(nc + 1, np.int32)
     for t in range(n):
         cell_start[_sub_cell(sx[t], sy[t], bidx, W)] += 1
     for c in range(1, nc):
@@ -123,7 +124,7 @@ def _sub_cell(sx_t, sy_t, bidx, W):
 
 
 @njit(cache=True)
-def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_start, cell_samples, k, g, f, h,
+def _section(c0, c2, band, singular, sx, sy, c_start, c_len, bidx, cell_start, cell_samples, k, g, f, h,
              max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y):
     """One cross-section through sample ``g`` of curve ``k`` following unit root ``f``.
 
@@ -132,6 +133,7 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_star
     ``sing_*`` is the arc length at which that side stopped on a singular pixel (inf if it did not).
     """
     H, W = band.shape
+    n_curves = len(c_start)
     ncr = 0
     x0 = np.float64(sx[g])   # float64 from the start: a float32 start compiles coeffs_at twice
     y0 = np.float64(sy[g])
@@ -207,7 +209,16 @@ def _section(c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_star
                         row = cell0 * (SUB * SUB) + bb * SUB
                         for m in range(cell_start[row + a_lo], cell_start[row + a_hi + 1]):
                             t = cell_samples[m]
-                            c = sc[t]
+                            # the sample's curve: the last whose first sample is at or before it (the
+                            # curves lie one after another), not a curve id a sample (0.14 GB on a 4x4 page)
+                            c = 0
+                            c_hi = n_curves
+                            while c_hi - c > 1:
+                                mid = (c + c_hi) >> 1
+                                if c_start[mid] <= t:
+                                    c = mid
+                                else:
+                                    c_hi = mid
                             li = t - c_start[c]
                             if li + 1 < c_len[c]:
                                 ax = sx[t]
@@ -310,7 +321,7 @@ def _argsort_stable(a, n):
 
 
 @njit(cache=True)
-def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, order, h, spacing,
+def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, c_start, c_len, order, h, spacing,
                     cover, min_gap, max_gap, max_steps, ambiguity, tie, lane_pad):
     H, W = band.shape
     bidx, cell_start, cell_samples = _cell_index(sx, sy, band)
@@ -325,8 +336,10 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
     v_seed = np.empty(vcap, np.int64)
     nv = 0
     mcap = 8192
-    m_vertex = np.empty(mcap, np.int64)
-    m_curve = np.empty(mcap, np.int64)
+    # int32 (vertex and curve ids): 8 bytes a crossing less, 43–64 MB on a 4x4 page at the kernel's
+    # peak; raw_graph widens them once the samples are gone
+    m_vertex = np.empty(mcap, np.int32)
+    m_curve = np.empty(mcap, np.int32)
     m_param = np.empty(mcap, np.float64)
     nm = 0
     cr_cap = 4096
@@ -381,7 +394,7 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, sc, c_start, c_len, 
                         else:
                             f = v if cv > 0 else -v
                         ncr, np0, np1, sg0, sg1 = _section(
-                            c0, c2, band, singular, sx, sy, sc, c_start, c_len, bidx, cell_start, cell_samples,
+                            c0, c2, band, singular, sx, sy, c_start, c_len, bidx, cell_start, cell_samples,
                             k, g, f, h, max_gap, max_steps, tie, cr_curve, cr_param, cr_s, poly_s, poly_x, poly_y)
                         srt = _argsort_stable(cr_s, ncr)
                         pos0 = 0

@@ -212,8 +212,7 @@ def take_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singul
     order = np.argsort(-lines.length, kind="stable").astype(np.int64)
     spacing = max(2, int(round(station_spacing / step)))
     return _build_sections(
-        c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.curve,
-        lines.start, lines.length, order, float(step), spacing,
+        c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.start, lines.length, order, float(step), spacing,
         float(params["cover_factor"] * station_spacing / step),
         max(1, int(round(params["min_station_gap"] / step))), float(params["max_gap"]),
         max(1, int(math.ceil(params["max_section_length"] / step))), float(params["ambiguity"]),
@@ -234,6 +233,8 @@ def raw_graph(sections: tuple) -> RawGraph:
     RawGraph
     """
     xy, width, root, flags, _seed, mv, mc, mp, n_fail = sections
+    # the kernel keeps its vertex and curve ids as int32 (its peak, beside the samples); int64 from here
+    mv, mc = mv.astype(np.int64), mc.astype(np.int64)
     order = member_order(mc, mp)
     edges, ecurve = streamline_edges(mv, mc, mp, order)
     return RawGraph(xy=xy, width=width, root=root, flags=flags, member_vertex=mv, member_curve=mc,

@@ -49,6 +49,8 @@ the drawing.
 
 from __future__ import annotations
 
+import dataclasses
+
 import time
 from itertools import pairwise
 
@@ -208,6 +210,8 @@ def build_graph(grey: np.ndarray, band: np.ndarray, c0: np.ndarray, c2: np.ndarr
     # samples (20 bytes each, 0.7 GB on a 4x4 page) are dropped before the crossings are sorted and the
     # clean-up runs (held to the end, they and those sorts made the stage's peak)
     s_xy, s_off = stored_streamlines(lines, conf.store_every)
+    # nor the curve id of each sample (4 bytes, 0.14 GB): the kernel finds a sample's curve from the starts
+    lines = dataclasses.replace(lines, curve=None)
     sections = take_cross_sections(c0, c2, band, singular, lines, step=tc.step,
                                    station_spacing=sc.station_spacing, cover_factor=sc.cover_factor,
                                    min_station_gap=sc.min_station_gap, max_gap=sc.max_gap,

@@ -541,7 +541,7 @@ def test_cross_section_finds_every_streamline_segment_it_crosses(angle):
     max_steps = int(np.ceil(s["max_section_length"] / t["step"]))
     buf = [np.empty(4096, np.int64), np.empty(4096), np.empty(4096)]
     poly = [np.empty((2, max_steps + 2)) for _ in range(3)]
-    ncr, n0, n1, _, _ = cs._section(c0, c2, band, np.ascontiguousarray(f["singular"]), sx, sy, lines.curve,
+    ncr, n0, n1, _, _ = cs._section(c0, c2, band, np.ascontiguousarray(f["singular"]), sx, sy,
                                     lines.start, lines.length, bidx, cstart, csamples, k, g, root, t["step"],
                                     s["max_gap"], max_steps, t["tie"], *buf, *poly)
     found = sorted((int(c), round(float(q), 4)) for c, q in zip(buf[0][1:ncr], buf[1][1:ncr]))

@@ -268,3 +268,36 @@ print((hwm - before) / (16 * 8 * band.size))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     # the cell starts once (1.0) and the pixels' int32 index; a copy of the starts made it 2.0
     assert float(out.stdout.split()[-1]) < 1.5
+
+
+def test_cross_sections_kernel_holds_no_curve_id_a_sample_and_int32_ids():
+    """The cross-sections' kernel finds a sample's curve from the curves' starts (no curve id a sample:
+    0.14 GB on a 4x4 page, dropped before it runs), counts its cells and keeps its crossings' vertex and
+    curve ids in int32 (−36 MB and −43 to −64 MB at its peak there); :func:`raw_graph` widens the ids to
+    int64 once the samples are gone, so the raw graph is the one of per-sample ids."""
+    import dataclasses
+
+    from stages.graph.cross_section import _cell_index
+    from stages.graph.raw_graph import raw_graph, take_cross_sections
+
+    d = synthetic.line()
+    p = prep.run(_cfg("prep"), image_bytes=d.png_bytes(), image_name="line")
+    f = field.run(_cfg("field"), prep=p)
+    band = np.asarray(p["mask"]).astype(bool)
+    lines = _lines()
+    assert _cell_index(np.ascontiguousarray(lines.xy[:, 0]), np.ascontiguousarray(lines.xy[:, 1]),
+                       band)[1].dtype == np.int32
+    s = _cfg("graph")["sections"]
+    t = _cfg("graph")["trace"]
+    params = dict(step=t["step"], tie=t["tie"], **{k: s[k] for k in (
+        "station_spacing", "cover_factor", "min_station_gap", "max_gap", "max_section_length", "ambiguity",
+        "lane_pad")})
+    sections = take_cross_sections(np.asarray(f["c0"]), np.asarray(f["c2"]), band,
+                                   np.asarray(f["singular"]).astype(bool), dataclasses.replace(lines, curve=None),
+                                   **params)
+    mv, mc = sections[5], sections[6]
+    assert len(mv) > 10 and mv.dtype == np.int32 and mc.dtype == np.int32
+    assert np.all(mc < len(lines.start))
+    raw = raw_graph(sections)
+    assert raw.member_vertex.dtype == np.int64 and raw.member_curve.dtype == np.int64
+    assert np.array_equal(raw.member_curve, mc) and np.array_equal(raw.member_vertex, mv)

@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.engine.execute.base import TaskResult
-from pipeline.engine.execute.process import pin_threads, quiet_full_collections, reuse_freed_memory
+from pipeline.engine.execute.process import (pin_threads, quiet_full_collections, return_freed_memory,
+                                             reuse_freed_memory)
 from pipeline.engine.kernels import shipped as kernels
 from pipeline.engine.registry import BY_NAME
 from pipeline.engine.store import ArtifactStore, item_keys, library_versions
@@ -132,12 +133,19 @@ def execute(task: Task, store_url: str, *upstream: TaskResult, alone: bool = Fal
     pin_threads(alone)
     quiet_full_collections()      # a dask worker or the keypoints child: this process runs stages
     reuse_freed_memory()
+    try:
+        return _run_task(task, store, source=Path(task.source or task.image))
+    finally:
+        return_freed_memory()     # the next task, maybe on another thread (arena), does not sit on it
+
+
+def _run_task(task: Task, store: ArtifactStore, source: Path) -> TaskResult:
+    """:func:`execute`'s work once the task is known to run: load, run, store; its result."""
     t0 = time.perf_counter()
     try:
         spec = BY_NAME[task.stage]
         module = spec.load()
         kernels.load_without_registries(task.stage)
-        source = Path(task.source or task.image)
         if task.stage == "prep":
             try:
                 data = source.read_bytes()

@@ -3,7 +3,8 @@
 Speed and memory settings measured on this project's 2-core machine (stages/DECISIONS.md, engine):
 full garbage collections made rare (:func:`quiet_full_collections`), freed arrays' memory kept for the
 next ones instead of mapped and faulted in again (:func:`reuse_freed_memory`, and for the keypoints
-network :func:`keep_network_memory`), one thread per task for torch and numba when two tasks share
+network :func:`keep_network_memory`) but given back after a task that left more than
+:data:`FREED_KEEP_BYTES` free (:func:`return_freed_memory`), one thread per task for torch and numba when two tasks share
 the cores (:func:`pin_threads`), and SIGINT held while worker processes start so that Ctrl-C is
 reported once, by the driver (:func:`sigint_held`). Standard library only: ``polyvec``'s launcher
 imports it (:data:`THREAD_ENV`) before it forks the keypoints child (:mod:`.early_child`).
@@ -52,8 +53,60 @@ HEAP_TRIM_BYTES = 32 * 2**20
 #: The keypoints child's trim threshold (:func:`keep_network_memory`): more than the network's
 #: activations freed at once in one pass of a drawing of ``keypoints.single_pass_max`` px.
 NETWORK_TRIM_BYTES = 2**30
+#: Freed heap a process may carry from one task into the next (:func:`return_freed_memory`): more than
+#: the 17–122 MB any stage left in the main process on two 512-px drawings and the 500×753 elephant
+#: (one in-process run), so that their tasks still reuse it; less than
+#: the 364 MB the field of a 6-Mpx page (4×4 scans) left in the main process, on top of which the graph
+#: peaked (stages/DECISIONS.md, engine).
+FREED_KEEP_BYTES = 192 * 2**20
 _HEAP_TUNED = False
+_FREED_KEEP = [FREED_KEEP_BYTES]   # this process's; the keypoints child keeps its network's heap
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4      # glibc's <malloc.h>
+
+
+@functools.lru_cache(maxsize=1)
+def _glibc():
+    """glibc's ``malloc_trim`` and ``mallinfo2`` (free bytes of every arena), or None where the C library
+    has them not (not glibc, glibc before 2.33); looked up once."""
+    import ctypes
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                                         "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    try:
+        libc = ctypes.CDLL(None)
+        trim, info = libc.malloc_trim, libc.mallinfo2
+    except (OSError, AttributeError, TypeError):
+        return None
+    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    info.argtypes, info.restype = (), MallInfo2
+    return trim, info
+
+
+def freed_heap_bytes() -> int | None:
+    """Bytes of this process's heap that malloc holds free (every arena's), None where unknown."""
+    if (glibc := _glibc()) is None:
+        return None
+    return int(glibc[1]().fordblks)
+
+
+def return_freed_memory(keep: int | None = None) -> bool:
+    """Give the heap's free pages back to the system (glibc's ``malloc_trim``) when malloc holds more
+    than ``keep`` bytes free (default :data:`FREED_KEEP_BYTES`, or :data:`NETWORK_TRIM_BYTES` after
+    :func:`keep_network_memory`); True when it did.
+
+    Called after each task: :func:`reuse_freed_memory` keeps freed arrays in the heap for the next ones,
+    but a task on another thread allocates from another arena and cannot reuse them, and a stage of a
+    large drawing may leave hundreds of MB free there that the next stage's peak then sits on (the
+    field of a 6-Mpx page: 364 MB under the graph's peak). Below ``keep``, nothing (a small drawing's
+    tasks keep reusing their heap). ``malloc_trim`` also returns free pages inside the heap, not only at
+    its top.
+    """
+    if (glibc := _glibc()) is None or glibc[1]().fordblks <= (_FREED_KEEP[0] if keep is None else keep):
+        return False
+    glibc[0](0)
+    return True
 
 
 @functools.lru_cache(maxsize=1)
@@ -91,6 +144,9 @@ def keep_network_memory() -> None:
     passes after it (a multi-drawing run, a large drawing's tiles) reuse it. The child's memory stays
     at its peak until it exits."""
     reuse_freed_memory()
+    # a 512-px drawing's pass leaves ~340 MB free: trimmed after each keypoints task, the next
+    # drawing's pass would fault it in again
+    _FREED_KEEP[0] = NETWORK_TRIM_BYTES
     if (mallopt := _mallopt()) is not None:
         mallopt(_M_MMAP_MAX, 0)
         mallopt(_M_TRIM_THRESHOLD, NETWORK_TRIM_BYTES)
