@@ -37,10 +37,7 @@ def close_loops(curves: list[dict], max_tail_px: float, max_tail_widths: float) 
         The curves, the closed ones with their new ``points`` (first point repeated last) and
         ``corners`` re-indexed; the others unchanged.
     """
-    out = []
-    for c in curves:
-        out.append(_closed(c, max_tail_px, max_tail_widths) or c)
-    return out
+    return [_closed(c, max_tail_px, max_tail_widths) or c for c in curves]
 
 
 def _closed(c: dict, max_tail_px: float, max_tail_widths: float) -> dict | None:

@@ -140,10 +140,20 @@ def streamline_edges(member_vertex: np.ndarray, member_curve: np.ndarray,
 
 
 def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
-                         *, step: float, station_spacing: float, cover_factor: float, min_station_gap: float,
-                         max_gap: float, max_section_length: float, ambiguity: float, tie: float,
-                         lane_pad: float) -> RawGraph:
-    """Cross-section vertices along the streamlines and the edges between them.
+                         **params: float) -> RawGraph:
+    """Cross-section vertices along the streamlines and the edges between them: :func:`raw_graph` of
+    :func:`take_cross_sections` (arguments as there)."""
+    return raw_graph(take_cross_sections(c0, c2, band, singular, lines, **params))
+
+
+def take_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
+                        *, step: float, station_spacing: float, cover_factor: float, min_station_gap: float,
+                        max_gap: float, max_section_length: float, ambiguity: float, tie: float,
+                        lane_pad: float) -> tuple:
+    """The cross-sections' kernel alone: vertices across the streamlines and the crossings, no edges.
+
+    Its outputs read nothing of ``lines`` any more, so a caller may drop the samples before
+    :func:`raw_graph` sorts the crossings (a page's samples and those sorts were the graph's peak together).
 
     Parameters
     ----------
@@ -174,34 +184,9 @@ def build_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singu
 
     Returns
     -------
-    RawGraph
-    """
-    return raw_graph(take_cross_sections(c0, c2, band, singular, lines, step=step, station_spacing=station_spacing,
-                                         cover_factor=cover_factor, min_station_gap=min_station_gap,
-                                         max_gap=max_gap, max_section_length=max_section_length,
-                                         ambiguity=ambiguity, tie=tie, lane_pad=lane_pad))
-
-
-def take_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular: np.ndarray, lines,
-                        **params) -> tuple:
-    """The cross-sections' kernel alone (:func:`build_cross_sections` without the edges): its outputs read
-    nothing of ``lines`` any more, so a caller may drop the samples before :func:`raw_graph` sorts the
-    crossings (a page's samples and those sorts were the graph's peak together).
-
-    Parameters
-    ----------
-    c0, c2, band, singular, lines
-        As :func:`build_cross_sections`.
-    **params
-        ``step``, ``station_spacing``, ``cover_factor``, ``min_station_gap``, ``max_gap``,
-        ``max_section_length``, ``ambiguity``, ``tie``, ``lane_pad`` as :func:`build_cross_sections`.
-
-    Returns
-    -------
     tuple
         The kernel's outputs, for :func:`raw_graph`.
     """
-    step, station_spacing = params["step"], params["station_spacing"]
     band = np.ascontiguousarray(band, dtype=np.bool_)
     c0 = field_on_band(c0, band)
     c2 = field_on_band(c2, band)
@@ -212,11 +197,11 @@ def take_cross_sections(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singul
     order = np.argsort(-lines.length, kind="stable").astype(np.int64)
     spacing = max(2, int(round(station_spacing / step)))
     return _build_sections(
-        c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.start, lines.length, order, float(step), spacing,
-        float(params["cover_factor"] * station_spacing / step),
-        max(1, int(round(params["min_station_gap"] / step))), float(params["max_gap"]),
-        max(1, int(math.ceil(params["max_section_length"] / step))), float(params["ambiguity"]),
-        float(params["tie"]), float(params["lane_pad"]))
+        c0, c2, band, np.ascontiguousarray(singular, dtype=np.bool_), sx, sy, tx, ty, lines.start, lines.length,
+        order, float(step), spacing,
+        float(cover_factor * station_spacing / step), max(1, int(round(min_station_gap / step))),
+        float(max_gap), max(1, int(math.ceil(max_section_length / step))), float(ambiguity), float(tie),
+        float(lane_pad))
 
 
 def raw_graph(sections: tuple) -> RawGraph:

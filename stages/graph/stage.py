@@ -50,7 +50,6 @@ the drawing.
 from __future__ import annotations
 
 import dataclasses
-
 import time
 from itertools import pairwise
 
@@ -61,12 +60,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.graph import GraphConfig, cleanup, ends
-from stages.graph.raw_graph import (
-    RawGraph,
-    raw_graph,
-    streamline_edges,
-    take_cross_sections,
-)
+from stages.graph.raw_graph import RawGraph, raw_graph, streamline_edges, take_cross_sections
 from stages.graph.trace import SINGULAR, Streamlines, trace_streamlines
 
 

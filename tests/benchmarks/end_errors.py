@@ -32,53 +32,32 @@ the set you report.
 
 from __future__ import annotations
 
-import argparse
 import collections
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from junction_errors import SCORER, keypoint_type, near, print_table, unmatched  # noqa: E402
-
-from pipeline.inspect import resolve  # noqa: E402
-from pipeline.engine.store import ArtifactStore  # noqa: E402
+from junction_errors import command_line, keypoint_type, near, print_table, scored_cases, scorer, unmatched  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out", type=Path, help="folder of <case>.svg (polyvec's output)")
-    ap.add_argument("cases", type=Path, help="folder of scored cases (<case>.png and .json)")
-    ap.add_argument("store", help="artifact store of that run (for the detected keypoints)")
-    ap.add_argument("--json", type=Path, default=None, help="write every missed / false end here")
-    a = ap.parse_args(argv)
-    sys.path.insert(0, str(SCORER))
-    import score as S  # the acceptance scorer, run as it is
-
-    store = ArtifactStore(a.store, create=False)
+    a = command_line(argv, __doc__, "end")
+    S = scorer()
     counts: dict[str, collections.Counter] = {}
     totals = collections.Counter()
     rows = []
-    for case_json in sorted(a.cases.glob("*.json")):
-        png = case_json.with_suffix(".png")
-        if case_json.name.endswith(".keypoints.json") or not png.exists():
-            continue
-        gt = json.loads(case_json.read_text())
-        w = float(gt["width"])
-        r, tol = max(2.0, w), max(5.0, w)
-        strokes = [S.resample(s) for s in gt["strokes"]]
-        curves = [c for c in (S.resample(c) for c in S.svg_polylines(str(a.out / f"{png.stem}.svg"))) if len(c) >= 2]
+    for case in scored_cases(a):
+        strokes, r, tol, points, types = case.strokes, case.r, case.tol, case.points, case.types
+        curves = [c for c in case.curves if len(c) >= 2]
         ge, gj, _, _ = S.topology(strokes, r)
         oe, _, _, _ = S.topology(curves, r)
-        kp = store.load("keypoints", resolve(store, "keypoints", None, str(png)))
-        points, types = np.asarray(kp.arrays["points"]), np.asarray(kp.arrays["types"])
         gt_pts = np.concatenate(strokes)
         out_pts = np.concatenate(curves) if curves else np.zeros((0, 2))
         out_ends = np.array([c[k] for c in curves for k in (0, -1)]).reshape(-1, 2)
         missed, false = unmatched(oe, ge, tol)
-        c = counts.setdefault(png.stem, collections.Counter())
+        c = counts.setdefault(case.stem, collections.Counter())
         c["_matched"] = int((~missed).sum())
         for p in oe[false]:
             curve = min(curves, key=lambda q: min(np.linalg.norm(q[[0, -1]] - p, axis=1)))
@@ -97,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                 kind = "mid"
             cls = f"false {kind} kp={keypoint_type(p, points, types)}"
             c[cls] += 1
-            rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
+            rows.append({"case": case.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
         for p in ge[missed]:
             d_end = float(np.linalg.norm(out_ends - p, axis=1).min()) if len(out_ends) else np.inf
             if d_end <= 4 * r:
@@ -108,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
                 kind = "lost"
             cls = f"missed {kind} kp={keypoint_type(p, points, types)}"
             c[cls] += 1
-            rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1]),
+            rows.append({"case": case.stem, "class": cls, "x": float(p[0]), "y": float(p[1]),
                          "nearest_out_end": d_end})
         totals.update(truth=len(ge), output=len(oe), matched=int((~missed).sum()))
 

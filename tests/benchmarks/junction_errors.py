@@ -26,6 +26,8 @@ import argparse
 import collections
 import json
 import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -107,43 +109,77 @@ def print_table(counts: dict, totals: collections.Counter, what: str, cases: Pat
         json_path.write_text(json.dumps(rows, indent=1))
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+@dataclass
+class ScoredCase:
+    """One case of a benchmark run: its ground truth and output, resampled as the acceptance scorer does,
+    its radii (``r`` = max(2, w) the meeting radius, ``tol`` = max(5, w) the matching tolerance) and the
+    keypoints detected on it (the store's newest ``keypoints`` artifact of the image)."""
+
+    stem: str
+    gt: dict
+    r: float
+    tol: float
+    strokes: list
+    curves: list
+    points: np.ndarray
+    types: np.ndarray
+
+
+def command_line(argv: list[str] | None, doc: str, what: str) -> argparse.Namespace:
+    """The benchmark's arguments: ``out``, ``cases``, ``store`` and ``--json`` (its missed / false ``what``s)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("out", type=Path, help="folder of <case>.svg (polyvec's output)")
     ap.add_argument("cases", type=Path, help="folder of scored cases (<case>.png and .json)")
     ap.add_argument("store", help="artifact store of that run (for the detected keypoints)")
-    ap.add_argument("--json", type=Path, default=None, help="write every missed / false junction here")
-    a = ap.parse_args(argv)
-    sys.path.insert(0, str(SCORER))
-    import score as S  # the acceptance scorer, run as it is
+    ap.add_argument("--json", type=Path, default=None, help=f"write every missed / false {what} here")
+    return ap.parse_args(argv)
 
+
+def scorer():
+    """The acceptance scorer's module (``../shared/tools/score.py``), imported and run as it is."""
+    sys.path.insert(0, str(SCORER))
+    import score
+
+    return score
+
+
+def scored_cases(a: argparse.Namespace) -> Iterator[ScoredCase]:
+    """Every scored case of ``a.cases`` (a PNG beside its JSON) with the output of ``a.out`` and the
+    detected keypoints of ``a.store``."""
+    S = scorer()
     store = ArtifactStore(a.store, create=False)
-    counts: dict[str, collections.Counter] = {}
-    totals = collections.Counter()
-    rows = []
     for case_json in sorted(a.cases.glob("*.json")):
         png = case_json.with_suffix(".png")
         if case_json.name.endswith(".keypoints.json") or not png.exists():
             continue
         gt = json.loads(case_json.read_text())
         w = float(gt["width"])
-        r, tol = max(2.0, w), max(5.0, w)
-        strokes = [S.resample(s) for s in gt["strokes"]]
-        curves = [S.resample(c) for c in S.svg_polylines(str(a.out / f"{png.stem}.svg"))]
-        _, gj, _, _ = S.topology(strokes, r)
-        _, oj, _, _ = S.topology(curves, r)
         kp = store.load("keypoints", resolve(store, "keypoints", None, str(png)))
-        points, types = np.asarray(kp.arrays["points"]), np.asarray(kp.arrays["types"])
-        labels = np.asarray(gt.get("junctions", []), float).reshape(-1, 2)
+        yield ScoredCase(png.stem, gt, max(2.0, w), max(5.0, w), [S.resample(s) for s in gt["strokes"]],
+                         [S.resample(c) for c in S.svg_polylines(str(a.out / f"{png.stem}.svg"))],
+                         np.asarray(kp.arrays["points"]), np.asarray(kp.arrays["types"]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = command_line(argv, __doc__, "junction")
+    S = scorer()
+    counts: dict[str, collections.Counter] = {}
+    totals = collections.Counter()
+    rows = []
+    for case in scored_cases(a):
+        strokes, r, points, types = case.strokes, case.r, case.points, case.types
+        _, gj, _, _ = S.topology(strokes, r)
+        _, oj, _, _ = S.topology(case.curves, r)
+        labels = np.asarray(case.gt.get("junctions", []), float).reshape(-1, 2)
         ends = np.array([s[k] for s in strokes for k in (0, -1)]).reshape(-1, 2)
-        missed, false = unmatched(oj, gj, tol)
-        c = counts.setdefault(png.stem, collections.Counter())
+        missed, false = unmatched(oj, gj, case.tol)
+        c = counts.setdefault(case.stem, collections.Counter())
         c["_matched"] = int((~missed).sum())
         for kind, where in (("missed", gj[missed]), ("false", oj[false])):
             for p in where:
                 cls = f"{kind} {classify(p, ends, r, labels, points, types)}"
                 c[cls] += 1
-                rows.append({"case": png.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
+                rows.append({"case": case.stem, "class": cls, "x": float(p[0]), "y": float(p[1])})
         totals.update(truth=len(gj), output=len(oj), matched=int((~missed).sum()))
 
     print_table(counts, totals, "junction", a.cases, rows, a.json)

@@ -268,6 +268,17 @@ def _piece(cid, pts, types, kps, width=3.0):
             "parts": [cid], "width": width}
 
 
+def _run_pieces(pieces, cfg, shape=(48, 48), mask=None):
+    """``export.run`` on the pieces as chosen paths with their own end types and keypoints (and ``mask``
+    as prep's band when given); the curves it writes."""
+    inputs = _inputs([p["points"] for p in pieces], list(range(len(pieces))), shape=shape)
+    if mask is not None:
+        inputs["prep"] = Artifact(data={"height": shape[0], "width": shape[1]}, arrays={"mask": mask})
+    for p, c in zip(inputs["topology"].data["paths"], pieces):
+        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
+    return export.run(cfg, **inputs).data["curves"]
+
+
 def _line(a, b, step=0.5):
     a, b = np.asarray(a, float), np.asarray(b, float)
     n = max(2, int(np.ceil(np.hypot(*(b - a)) / step)) + 1)

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages import export
-from stages.artifact import Artifact
-from test_export import CFG, _cfg, _inputs, _line, _piece
+from test_export import CFG, _cfg, _line, _piece, _run_pieces
 
 
 def _ell_mask(shape=(48, 48), w=3):
@@ -26,11 +24,7 @@ def _corner_found_twice():
 
 
 def _run(pieces, cfg, mask):
-    inputs = _inputs([p["points"] for p in pieces], list(range(len(pieces))), shape=mask.shape)
-    inputs["prep"] = Artifact(data={"height": mask.shape[0], "width": mask.shape[1]}, arrays={"mask": mask})
-    for p, c in zip(inputs["topology"].data["paths"], pieces):
-        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
-    return export.run(cfg, **inputs).data["curves"]
+    return _run_pieces(pieces, cfg, mask.shape, mask)
 
 
 def test_two_free_ends_at_a_corner_found_twice_become_one_curve_with_a_corner():

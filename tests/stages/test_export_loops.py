@@ -4,21 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages import export
-from test_export import CFG, _cfg, _inputs, _piece
+from test_export import CFG, _cfg, _piece
+from test_export import _run_pieces as _run
 
 
 def _ring(start_deg: float, end_deg: float, r: float = 12.0, c=(24.0, 24.0), wobble: float = 0.0) -> np.ndarray:
     t = np.radians(np.linspace(start_deg, end_deg, 120))
     rad = r + wobble * np.linspace(-1, 1, len(t))                    # the tails pass each other
     return np.stack([c[0] + rad * np.cos(t), c[1] + rad * np.sin(t)], 1)
-
-
-def _run(pieces, cfg):
-    inputs = _inputs([p["points"] for p in pieces], list(range(len(pieces))), shape=(48, 48))
-    for p, c in zip(inputs["topology"].data["paths"], pieces):
-        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
-    return export.run(cfg, **inputs).data["curves"]
 
 
 def _free_ends(curves) -> int:

@@ -6,6 +6,7 @@ import numpy as np
 
 from stages import export
 from test_export import CFG, _cfg, _crossings_between_curves, _inputs, _line, _piece
+from test_export import _run_pieces as _run
 
 
 def _stroke_turning_at_junction_keypoints():
@@ -15,13 +16,6 @@ def _stroke_turning_at_junction_keypoints():
     b = _piece(2, _line([40, 0], [40, 40]), [3, 3], [2, 1])          # runs backwards
     c = _piece(3, _line([40, 0], [0, 41.3]), [3, 1], [2, 3])
     return [a, b, c]
-
-
-def _run(pieces, cfg):
-    inputs = _inputs([p["points"] for p in pieces], list(range(len(pieces))), shape=(48, 48))
-    for p, c in zip(inputs["topology"].data["paths"], pieces):
-        p["end_types"], p["end_keypoints"] = c["end_types"], c["end_keypoints"]
-    return export.run(cfg, **inputs).data["curves"]
 
 
 def test_ends_that_meet_alone_at_junction_keypoints_make_one_curve_crossing_only_itself():
