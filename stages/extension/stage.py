@@ -27,16 +27,18 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.extension import ExtensionConfig
-from stages.field.solver import _as_real, _blockwise_cg, _region_index, _smart_laplacian, _solve_blocks
+from stages.field.solver import (_as_real, _band_differences, _blockwise_cg, _region_index, _solve_blocks,
+                                 _weighted_laplacian)
 
 
 def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,
-                 cfg: ExtensionConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+                 cfg: ExtensionConfig, dtype: np.dtype | type = np.complex128) -> tuple[np.ndarray, np.ndarray, dict]:
     """Extend the band field into a dilated ring.
 
     The ring is ``dilate(mask, disk(radius)) − mask``.  On it the smart-weighted Laplacian
     ``L = Σ Dᵀ diag(s) D`` (over band + ring) is minimised with the band values fixed; ring values are
-    then multiplied by ``scale · d₁`` with d₁ the L1 (taxicab) distance to the band.
+    then multiplied by ``scale · d₁`` with d₁ the L1 (taxicab) distance to the band.  Only the ring's
+    rows of ``L`` are kept, and the page arrays are made once, at the end, in ``dtype``.
 
     Parameters
     ----------
@@ -47,42 +49,56 @@ def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray
     s : numpy.ndarray
         float (H, W) smart weights (:func:`stages.field.stage.smart_weights`).
     cfg : ExtensionConfig
+    dtype : numpy.dtype, optional
+        Of the returned arrays.  The stage asks for its artifact's complex64: the ring's float64 solution
+        is rounded once, as ``.astype`` of complex128 pages rounded it, and no complex128 page is held
+        (two were 192 MB under a 4×4 page's peak).
 
     Returns
     -------
     c0_ext, c2_ext : numpy.ndarray
-        complex128 (H, W): band values on the band, scaled extension on the ring, 0 beyond.
+        ``dtype`` (H, W): band values on the band, scaled extension on the ring, 0 beyond.
     stats : dict
         ``extension_unknowns``, ``extension_cg_iterations``, ``extension_cg_converged``.
     """
     r = cfg.radius
-    c0_ext = np.where(mask, c0, 0).astype(np.complex128)
-    c2_ext = np.where(mask, c2, 0).astype(np.complex128)
     if not mask.any() or r <= 0:
-        return c0_ext, c2_ext, {"extension_unknowns": 0, "extension_cg_iterations": 0,
-                                "extension_cg_converged": True}
+        return (_extended_page(c0, mask, None, None, dtype), _extended_page(c2, mask, None, None, dtype),
+                {"extension_unknowns": 0, "extension_cg_iterations": 0, "extension_cg_converged": True})
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     disk = xx * xx + yy * yy <= r * r
     dil = ndi.binary_dilation(mask, structure=disk)
     ring = dil & ~mask
-    index = _region_index(dil)
-    lap = _smart_laplacian(dil, index, np.asarray(s, dtype=np.float64))
     in_ring = ring[dil]
-    lrr = lap[in_ring][:, in_ring]
-    lrb = lap[in_ring][:, ~in_ring]
-    band_vals = _as_real(np.stack([c0[mask], c2[mask]], axis=1).astype(np.complex128))
+    # _smart_laplacian's L, its pixel index freed before the product and its weights taken on the
+    # region only (not a float64 page); only the ring's rows are kept (the band's are never read)
+    differences = _band_differences(dil, _region_index(dil))
+    lap_ring = _weighted_laplacian(differences, s[dil].astype(np.float64))[in_ring]
+    del differences
+    lrr = lap_ring[:, in_ring]
+    rhs = -(lap_ring[:, ~in_ring] @ _as_real(np.stack([c0[mask], c2[mask]], axis=1).astype(np.complex128)))
+    del lap_ring
     # Both coefficients share the real operator: one solve over their four real columns.
     k = int(in_ring.sum())
-    rhs = -(lrb @ band_vals)
     x, iters, converged = _blockwise_cg(lrr, None, rhs, None, _solve_blocks(dil, ring), cfg.cg_rtol,
                                         cfg.cg_max_iterations)
-    dist = ndi.distance_transform_cdt(~mask, metric="taxicab").astype(np.float64)
-    scale = cfg.scale * dist[ring]
+    del lrr, rhs
+    scale = cfg.scale * ndi.distance_transform_cdt(~mask, metric="taxicab")[ring].astype(np.float64)
     xc = x.view(np.complex128)
-    c0_ext[ring] = xc[:, 0] * scale
-    c2_ext[ring] = xc[:, 1] * scale
-    return c0_ext, c2_ext, {"extension_unknowns": 2 * k, "extension_cg_iterations": max(iters),
-                            "extension_cg_converged": bool(converged)}
+    return (_extended_page(c0, mask, ring, xc[:, 0] * scale, dtype),
+            _extended_page(c2, mask, ring, xc[:, 1] * scale, dtype),
+            {"extension_unknowns": 2 * k, "extension_cg_iterations": max(iters),
+             "extension_cg_converged": bool(converged)})
+
+
+def _extended_page(c: np.ndarray, mask: np.ndarray, ring: np.ndarray | None, ring_values: np.ndarray | None,
+                   dtype) -> np.ndarray:
+    """A ``dtype`` page: ``c`` on the band, ``ring_values`` (complex128, raster order) on the ring, 0 beyond."""
+    page = np.zeros(mask.shape, dtype)
+    page[mask] = c[mask]
+    if ring is not None:
+        page[ring] = ring_values
+    return page
 
 
 def run(cfg: dict, **inputs: Artifact) -> Artifact:
@@ -113,11 +129,11 @@ def run(cfg: dict, **inputs: Artifact) -> Artifact:
         raise InputError(f"extension: mask, c0, c2 and smart_weights must be equal-shaped 2-D arrays, got "
                          f"{mask.shape}, {c0.shape}, {c2.shape}, {s.shape}")
     t = time.perf_counter()
-    c0_ext, c2_ext, stats = extend_field(c0, c2, mask.astype(bool), s, conf)
+    c0_ext, c2_ext, stats = extend_field(c0, c2, mask.astype(bool), s, conf, dtype=np.complex64)
     stats["extension_seconds"] = time.perf_counter() - t
     notes = []
     if not stats["extension_cg_converged"]:
         notes.append(f"the extension's solve stopped at extension.cg_max_iterations ({conf.cg_max_iterations}) "
                      f"before extension.cg_rtol: the flow's field off the band may be rougher")
-    return Artifact(arrays={"c0_ext": c0_ext.astype(np.complex64), "c2_ext": c2_ext.astype(np.complex64)},
+    return Artifact(arrays={"c0_ext": c0_ext, "c2_ext": c2_ext},
                     data=stats, notes=notes)
