@@ -32,8 +32,14 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.extension import ExtensionConfig
-from stages.field.solver import (_as_real, _band_differences, _blockwise_cg, _region_index, _solve_blocks,
-                                 _weighted_laplacian)
+from stages.field.solver import (
+    _as_real,
+    _band_differences,
+    _blockwise_cg,
+    _region_index,
+    _solve_blocks,
+    _weighted_laplacian,
+)
 
 
 def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,
