@@ -9,7 +9,11 @@ draws them:
   (centre to centre) around the original, each with a slow drift of its offset, a small jitter and its
   own ends (trimmed or run on by up to 1.5 widths); in pencil each pass has its own ink level;
 * **retraced** — the stroke doubling back on itself: one pen path along the stroke and back over
-  30–80 % of it (from either end), the way back ``d`` ∈ [0.3, 1.5] widths aside after a hairpin.
+  30–80 % of it (from either end), the way back ``d`` ∈ [0.3, 1.5] widths aside after a hairpin;
+* **sketched** (``--p-sketched``, 0 by default) — the stroke drawn as 2–4 short strokes one after the
+  other, the way TU-Berlin's and the creative sketches draw a line: each piece runs on past the break
+  by −0.5 to 2.5 widths (< 0: a small gap), lies up to one width aside and leaves the line at up to
+  12° at its ends, with its own jitter.
 
 The case JSON keeps the ORIGINAL single strokes (and their keypoints) as the ground truth, so the
 acceptance scorer expects one curve where a person sees one line. Written as ``<name>_od.png`` +
@@ -93,6 +97,37 @@ def retraced(rng: np.random.Generator, stroke: np.ndarray, w: float) -> list[np.
     return [np.vstack([p, ret[1:]])]
 
 
+def sketched(rng: np.random.Generator, stroke: np.ndarray, w: float) -> list[np.ndarray]:
+    """2–4 short pen strokes one after the other along the stroke, overlapping or just apart at the breaks."""
+    p, s = resample_uniform(np.asarray(stroke, np.float64), 1.0)
+    length = float(s[-1])
+    k = min(int(rng.integers(2, 5)), max(int(length // (4 * w)), 1))
+    if k < 2:
+        return [p]
+    cuts = np.sort(rng.uniform(0.15, 0.85, k - 1)) * length
+    cuts = cuts[np.diff(np.concatenate([[0.0], cuts, [length]]))[:-1] >= 2 * w]
+    bounds = np.concatenate([[0.0], cuts, [length]])
+    normals = _normals(p)
+    pieces = []
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        run_lo = rng.uniform(-0.5, 2.5) * w / 2 if lo > 0 else 0.0      # each side of a break takes half
+        run_hi = rng.uniform(-0.5, 2.5) * w / 2 if hi < length else 0.0
+        a, b = max(lo - run_lo, 0.0), min(hi + run_hi, length)
+        if b - a < 2.0:
+            continue
+        at = np.linspace(a, b, max(int(b - a), 2))
+        q = point_at_arc(p, s, at)
+        n = point_at_arc(normals, s, at)
+        # a lateral offset, each end turning off the line over its last 3 widths, a little jitter
+        zone = 3.0 * w
+        into = [np.maximum(zone - (at - a), 0.0), np.maximum(zone - (b - at), 0.0)]
+        turn = np.tan(np.radians(rng.uniform(-12, 12, 2)))
+        off = (rng.uniform(-1.0, 1.0) * w + sum(t * e * e / (2 * zone) for t, e in zip(turn, into))
+               + _wobble(rng, len(at), 0.08 * w))
+        pieces.append(q + n * off[:, None])
+    return pieces or [p]
+
+
 def main() -> int:
     import conf
     from pipeline.train import compose_plain
@@ -104,6 +139,10 @@ def main() -> int:
     ap.add_argument("--step", type=int, default=3, help="every step-th drawing of each folder")
     ap.add_argument("--p-overdrawn", type=float, default=0.45, help="share of strokes drawn 2-3 times")
     ap.add_argument("--p-retraced", type=float, default=0.2, help="share of strokes that double back")
+    ap.add_argument("--p-sketched", type=float, default=0.0, help="share of strokes drawn as 2-4 short strokes")
+    ap.add_argument("--truth", choices=("original", "drawn"), default="original",
+                    help="ground truth: the original strokes (one line where a person sees one) or the pen "
+                         "strokes as drawn (the convention of realvec_dev's human strokes)")
     ap.add_argument("--seed", type=int, default=55)
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
@@ -131,10 +170,13 @@ def main() -> int:
                         drawn += overdrawn(rng, st, w)
                     elif long_enough and u < a.p_overdrawn + a.p_retraced:
                         drawn += retraced(rng, st, w)
+                    elif long_enough and u < a.p_overdrawn + a.p_retraced + a.p_sketched:
+                        drawn += sketched(rng, st, w)
                     else:
                         drawn.append(st)
                 image = render_case(rng, drawn, size, w, style, cfg).image
-                truth = render_case(np.random.default_rng(0), strokes, size, w, style, cfg).truth
+                truth = render_case(np.random.default_rng(0), strokes if a.truth == "original" else drawn,
+                                    size, w, style, cfg).truth
                 name = f"{d}_{style}_od"
                 image.save(a.out / f"{name}.png")
                 (a.out / f"{name}.json").write_text(json.dumps(dict(truth, source=path.name)))
