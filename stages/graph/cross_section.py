@@ -321,12 +321,25 @@ def _argsort_stable(a, n):
 
 
 @njit(cache=True)
+def _is_covered(covered, s):
+    """Whether sample ``s`` is covered (``covered`` holds one bit a sample, 8 to a byte)."""
+    return (covered[s >> 3] >> (s & 7)) & 1 != 0
+
+
+@njit(cache=True)
+def _cover(covered, s):
+    """Mark sample ``s`` covered."""
+    covered[s >> 3] |= np.uint8(1 << (s & 7))
+
+
+@njit(cache=True)
 def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, c_start, c_len, order, h, spacing,
                     cover, min_gap, max_gap, max_steps, ambiguity, tie, lane_pad):
     H, W = band.shape
     bidx, cell_start, cell_samples = _cell_index(sx, sy, band)
     n_samples = len(sx)
-    covered = np.zeros(n_samples, np.bool_)
+    # one bit a sample (a bool was 1 byte, 34 MB on a 4x4 page, at the kernel's peak)
+    covered = np.zeros((n_samples + 7) // 8, np.uint8)
     half = max(1, spacing // 2)
     vcap = 1024
     v_xy = np.empty((vcap, 2), np.float64)
@@ -335,7 +348,10 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, c_start, c_len, orde
     v_flag = np.empty(vcap, np.uint8)
     v_seed = np.empty(vcap, np.int64)
     nv = 0
-    mcap = 8192
+    # room for a crossing every 4 samples at once (a 4x4 page has one every 6): doubling from 8192
+    # held the old and the new buffers together at its last growth (+45 MB on the page), and the
+    # untouched tail takes no memory
+    mcap = max(8192, n_samples // 4)
     # int32 (vertex and curve ids): 8 bytes a crossing less, 43–64 MB on a 4x4 page at the kernel's
     # peak; raw_graph widens them once the samples are gone
     m_vertex = np.empty(mcap, np.int32)
@@ -355,17 +371,17 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, c_start, c_len, orde
         L = c_len[k]
         i = 0
         while i < L:
-            while i < L and covered[st + i]:
+            while i < L and _is_covered(covered, st + i):
                 i += 1
             if i == L:
                 break
             e = i
-            while e < L and not covered[st + e]:
+            while e < L and not _is_covered(covered, st + e):
                 e += 1
             run = e - i
             if i > 0 and e < L and run < min_gap:
                 for q in range(i, e):
-                    covered[st + q] = True
+                    _cover(covered, st + q)
                 i = e
                 continue
             if e < L:
@@ -452,14 +468,14 @@ def _build_sections(c0, c2, band, singular, sx, sy, tx, ty, c_start, c_len, orde
                             a = max(0, int(math.floor(p - cover)))
                             b = min(c_len[c] - 1, int(math.ceil(p + cover)))
                             for z in range(a, b + 1):
-                                covered[c_start[c] + z] = True
+                                _cover(covered, c_start[c] + z)
                         nv += 1
                         made = True
             if not made:
                 n_fail += 1
             # always make progress along this curve, even where no cross-section could be taken
             for q in range(i, min(L, j + half + 1)):
-                covered[st + q] = True
+                _cover(covered, st + q)
     # the crossings (millions on a page) as views of their buffers, not copies: the untouched tails
     # of the buffers take no memory
     return (v_xy[:nv].copy(), v_width[:nv].copy(), v_root[:nv].copy(), v_flag[:nv].copy(), v_seed[:nv].copy(),

@@ -25,7 +25,9 @@ test, so it cannot be vectorised over seeds without changing the result (and the
 keeps the lanes ~``merge_distance`` apart instead of one full-length trace per band pixel).  Measured
 on the scanned drawings (20–35 k band pixels, 1–2 M samples): 0.3–0.9 s.  During the trace the samples
 live in per-pixel linked lists (``head``/``next``), which the merge test walks; the cross-sections
-index them afresh (:func:`stages.graph.cross_section._cell_index`).
+index them afresh (:func:`stages.graph.cross_section._cell_index`).  A sample's curve and its step along
+it are not stored: the curves lie one after another, the one being traced last, so both follow from the
+sample's id (20 bytes a sample in the kernel, was 28; 34 M samples on a 4x4 page).
 """
 
 from __future__ import annotations
@@ -128,10 +130,21 @@ def _grow_f(a, n):
 
 
 @njit(cache=True)
-def _merges(head, nxt, sx, sy, tx, ty, sc, si, w, qx, qy, dx, dy, cid, t, lag, d2, mcos):
+def _merges(head, nxt, sx, sy, tx, ty, w, qx, qy, dx, dy, base, nf, t, lag, d2, mcos):
+    """Whether a sample at (qx, qy) heading (dx, dy), step ``t`` of the curve being traced, merges.
+
+    The curve being traced holds the samples from ``base`` on, its forward half first (``nf`` samples,
+    the seed at ``base``: step ``s − base``), then its backward half (step ``−(s − base − nf + 1)``): so
+    a sample's curve and in-curve step follow from its id, with no curve id or step stored a sample
+    (8 bytes, 0.27 GB on a 4x4 page).  ``base`` past every sample (the seed test) lags no sample.
+    """
     s = head[int(qy) * w + int(qx)]
     while s >= 0:
-        if not (sc[s] == cid and abs(si[s] - t) <= lag):
+        own = False
+        if s >= base:
+            si = s - base if s - base < nf else base + nf - 1 - s
+            own = abs(si - t) <= lag
+        if not own:
             ex = sx[s] - qx
             ey = sy[s] - qy
             if ex * ex + ey * ey < d2 and abs(tx[s] * dx + ty[s] * dy) > mcos:
@@ -141,31 +154,51 @@ def _merges(head, nxt, sx, sy, tx, ty, sc, si, w, qx, qy, dx, dy, cid, t, lag, d
 
 
 @njit(cache=True)
-def _is_duplicate(head, nxt, sx, sy, sc, w, base, n, cid, d2):
-    """Every sample in [base, n) lies within sqrt(d2) of one same earlier curve."""
+def _curve_of(c_start, nc, s):
+    """The curve holding sample ``s`` of the kept curves (they lie one after another from ``c_start``)."""
+    lo = np.int64(0)
+    hi = nc - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if c_start[mid] <= s:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@njit(cache=True)
+def _is_duplicate(head, nxt, sx, sy, c_start, c_len, nc, w, base, n, d2):
+    """Every sample in [base, n) lies within sqrt(d2) of one same earlier curve.
+
+    The earlier curves are ``c_start[:nc]``, ``c_len[:nc]`` (samples before ``base``); the samples of the
+    curve being tested are those from ``base`` on.
+    """
     s = head[int(sy[base]) * w + int(sx[base])]
     cands = np.empty(64, np.int64)
-    nc = 0
-    while s >= 0 and nc < 64:
-        c = sc[s]
-        if c != cid:
+    nc_ = 0
+    while s >= 0 and nc_ < 64:
+        if s < base:
+            c = _curve_of(c_start, nc, s)
             seen = False
-            for q in range(nc):
+            for q in range(nc_):
                 if cands[q] == c:
                     seen = True
                     break
             if not seen:
-                cands[nc] = c
-                nc += 1
+                cands[nc_] = c
+                nc_ += 1
         s = nxt[s]
-    for q in range(nc):
+    for q in range(nc_):
         c = cands[q]
+        lo = c_start[c]
+        hi = lo + c_len[c]
         all_close = True
         for k in range(base, n):
             r = head[int(sy[k]) * w + int(sx[k])]
             close = False
             while r >= 0:
-                if sc[r] == c:
+                if lo <= r < hi:
                     ex = sx[r] - sx[k]
                     ey = sy[r] - sy[k]
                     if ex * ex + ey * ey < d2:
@@ -181,15 +214,26 @@ def _is_duplicate(head, nxt, sx, sy, sc, w, base, n, cid, d2):
 
 
 @njit(cache=True)
+def _grow_rows(a, n):
+    """A (2, n) copy of the (2, m) ``a``'s first ``m`` columns (an element loop, as :func:`_grow_f`)."""
+    b = np.empty((2, n), a.dtype)
+    for r in range(2):
+        for q in range(a.shape[1]):
+            b[r, q] = a[r, q]
+    return b
+
+
+@njit(cache=True)
 def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_cos, lag, tie, cap):
     H, W = band.shape
     head = np.full(H * W, -1, np.int32)
-    sx = np.empty(cap, np.float32)
-    sy = np.empty(cap, np.float32)
-    tx = np.empty(cap, np.float32)
-    ty = np.empty(cap, np.float32)
-    sc = np.empty(cap, np.int32)
-    si = np.empty(cap, np.int32)
+    # the samples' (x, y) and tangents as the rows of (2, cap) buffers: the streamlines' (2, N) columns
+    # come out as views, not stacked after the kernel (a copy as large as the kernel's own samples)
+    sxy = np.empty((2, cap), np.float32)
+    stg = np.empty((2, cap), np.float32)
+    sx = sxy[0]; sy = sxy[1]; tx = stg[0]; ty = stg[1]
+    # no curve id and no in-curve step a sample: both follow from the sample's id (_merges,
+    # _is_duplicate); 20 bytes a sample with the pixels' lists, was 28 (stages/DECISIONS.md, graph)
     nxt = np.empty(cap, np.int32)
     # counters start as int64, not as the literal 0: a literal reaches the helpers' signatures and
     # compiles each of them once more (stages/DECISIONS.md)
@@ -212,7 +256,7 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                 continue
             x0 = j + 0.5
             y0 = i + 0.5
-            if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, x0, y0, d0.real, d0.imag, np.int64(-1), np.int64(0), lag,
+            if _merges(head, nxt, sx, sy, tx, ty, W, x0, y0, d0.real, d0.imag, n, n, np.int64(0), lag,
                        merge_d2, merge_cos):
                 continue
             # room for the longest curve one seed can add, made here and not per step: an array
@@ -221,13 +265,13 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
             if n + 2 * max_half + 2 >= cap:
                 while n + 2 * max_half + 2 >= cap:
                     cap *= 2
-                sx = _grow_f(sx, cap); sy = _grow_f(sy, cap); tx = _grow_f(tx, cap)
-                ty = _grow_f(ty, cap); sc = _grow_f(sc, cap); si = _grow_f(si, cap)
+                sxy = _grow_rows(sxy, cap); stg = _grow_rows(stg, cap)
+                sx = sxy[0]; sy = sxy[1]; tx = stg[0]; ty = stg[1]
                 nxt = _grow_f(nxt, cap)
-            cid = nc
             base = n
             reasons = np.empty(2, np.int8)
-            nf = 0
+            # while the forward half is traced all the curve's samples are forward ones
+            nf = np.int64(2 * max_half + 2)
             for half in range(2):
                 sgn = 1 if half == 0 else -1
                 px = x0
@@ -236,7 +280,7 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                 k = 0
                 if half == 0:
                     # the seed itself is sample 0 of the forward half
-                    sx[n] = x0; sy[n] = y0; tx[n] = d0.real; ty[n] = d0.imag; sc[n] = cid; si[n] = 0
+                    sx[n] = x0; sy[n] = y0; tx[n] = d0.real; ty[n] = d0.imag
                     p = i * W + j
                     nxt[n] = head[p]
                     head[p] = n
@@ -265,14 +309,13 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                         reason = SINGULAR
                         break
                     k += 1
-                    if _merges(head, nxt, sx, sy, tx, ty, sc, si, W, qx, qy, nd.real, nd.imag, cid, sgn * k,
+                    if _merges(head, nxt, sx, sy, tx, ty, W, qx, qy, nd.real, nd.imag, base, nf, sgn * k,
                                lag, merge_d2, merge_cos):
                         reason = MERGED
                         break
                     sx[n] = qx; sy[n] = qy
                     # tangents are oriented along the final curve order (backward half reversed)
                     tx[n] = sgn * nd.real; ty[n] = sgn * nd.imag
-                    sc[n] = cid; si[n] = sgn * k
                     p = qi * W + qj
                     nxt[n] = head[p]
                     head[p] = n
@@ -285,7 +328,7 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
                     nf = n - base
             total = n - base
             keep = total > 2
-            if keep and _is_duplicate(head, nxt, sx, sy, sc, W, base, n, cid, merge_d2):
+            if keep and _is_duplicate(head, nxt, sx, sy, c_start, c_len, nc, W, base, n, merge_d2):
                 keep = False
             # this curve's samples sit at the front of their pixels' lists: unlink them
             for s in range(n - 1, base - 1, -1):
@@ -308,7 +351,6 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
             for q in range(total):
                 s = base + q
                 sx[s] = tmp[q, 0]; sy[s] = tmp[q, 1]; tx[s] = tmp[q, 2]; ty[s] = tmp[q, 3]
-                si[s] = q
                 p = int(sy[s]) * W + int(sx[s])
                 nxt[s] = head[p]
                 head[p] = s
@@ -328,7 +370,7 @@ def _trace_all(c0, c2, band, singular, seed_dir, h, max_half, merge_d2, merge_co
             nc += 1
     # views, not copies: a copy of the ~28 bytes a sample would double the samples' memory at the
     # return (a 4x4 page: 34 M samples, 1 GB); the buffers' untouched tails take no memory
-    return sx[:n], sy[:n], tx[:n], ty[:n], sc[:n], c_start[:nc], c_len[:nc], c_end[:nc]
+    return sxy[:, :n], stg[:, :n], c_start[:nc], c_len[:nc], c_end[:nc]
 
 
 @dataclass
@@ -338,11 +380,10 @@ class Streamlines:
     Attributes
     ----------
     xy : numpy.ndarray
-        float32 (N, 2) samples (x, y), curve after curve; column-major (``xy[:, 0]`` is contiguous).
+        float32 (N, 2) samples (x, y), curve after curve; the two rows of a (2, ·) array seen as
+        columns (``xy[:, 0]`` is contiguous).
     tangent : numpy.ndarray
-        float32 (N, 2) unit tangents, oriented along each curve; column-major like ``xy``.
-    curve : numpy.ndarray
-        int32 (N,) curve id of each sample.
+        float32 (N, 2) unit tangents, oriented along each curve; laid out like ``xy``.
     start, length : numpy.ndarray
         int64 (C,) first sample and number of samples of each curve.
     end_reason : numpy.ndarray
@@ -352,10 +393,15 @@ class Streamlines:
 
     xy: np.ndarray
     tangent: np.ndarray
-    curve: np.ndarray
     start: np.ndarray
     length: np.ndarray
     end_reason: np.ndarray
+
+    @property
+    def curve(self) -> np.ndarray:
+        """int32 (N,) curve id of each sample, made on demand: the samples lie curve after curve, so no
+        stage step keeps one a sample (4 bytes, 0.14 GB on a 4x4 page)."""
+        return np.repeat(np.arange(len(self.start), dtype=np.int32), self.length)
 
     @property
     def offsets(self) -> np.ndarray:
@@ -441,13 +487,10 @@ def trace_streamlines(c0: np.ndarray, c2: np.ndarray, band: np.ndarray, singular
     seed = np.where(mod > 1e-12, root / np.where(mod > 0, mod, 1), 0).astype(np.complex128)
     del root, mod
     cap = max(1024, int(band.sum()) * 64)
-    sx, sy, tx, ty, sc, cs, cl, ce = _trace_all(
+    xy, tangent, cs, cl, ce = _trace_all(
         c0, c2, band, sing, seed, float(step), int(max_half_samples),
         float(merge_distance) ** 2, float(merge_cos), int(self_merge_lag), float(tie), cap)
-    # (2, N) arrays seen as (N, 2): the columns are contiguous, so the cross-sections' kernel reads
-    # them without copying (four copies were 16 bytes a sample, 0.55 GB on a 4x4 page)
-    xy = np.stack([sx, sy])
-    del sx, sy
-    tangent = np.stack([tx, ty])
-    del tx, ty
-    return Streamlines(xy=xy.T, tangent=tangent.T, curve=sc, start=cs, length=cl, end_reason=ce)
+    # (2, N) views of the kernel's buffers seen as (N, 2): the columns are contiguous, so the
+    # cross-sections' kernel reads them without copying (four copies were 16 bytes a sample, 0.55 GB
+    # on a 4x4 page), and nothing is stacked after the kernel
+    return Streamlines(xy=xy.T, tangent=tangent.T, start=cs, length=cl, end_reason=ce)

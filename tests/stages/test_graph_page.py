@@ -54,8 +54,8 @@ def test_stored_streamlines_keep_every_nth_sample_and_the_last():
     start = np.r_[0, np.cumsum(length)[:-1]]
     curve = np.repeat(np.arange(300), length).astype(np.int32)
     xy = rng.random((2, int(length.sum()))).astype(np.float32).T
-    lines = Streamlines(xy=xy, tangent=xy, curve=curve, start=start, length=length,
-                        end_reason=np.zeros((300, 2), np.int8))
+    lines = Streamlines(xy=xy, tangent=xy, start=start, length=length, end_reason=np.zeros((300, 2), np.int8))
+    np.testing.assert_array_equal(lines.curve, curve)
     for every in (0, 1, 2, 5, 7, 100):
         local = np.arange(len(xy)) - start[curve]
         take = (local % max(1, every) == 0) | (local == length[curve] - 1)
@@ -164,8 +164,8 @@ def test_stored_streamlines_index_in_chunks():
     start = np.r_[0, np.cumsum(length)[:-1]]
     n = int(length.sum())
     xy = rng.random((2, n), dtype=np.float32).T
-    lines = Streamlines(xy=xy, tangent=xy, curve=np.repeat(np.arange(len(length)), length).astype(np.int32),
-                        start=start, length=length, end_reason=np.zeros((len(length), 2), np.int8))
+    lines = Streamlines(xy=xy, tangent=xy, start=start, length=length,
+                        end_reason=np.zeros((len(length), 2), np.int8))
     tracemalloc.start()
     s_xy, _ = stage.stored_streamlines(lines, 1)
     peak = tracemalloc.get_traced_memory()[1]
@@ -184,8 +184,8 @@ def test_stored_streamlines_chunks_give_the_same_samples():
     length = rng.integers(0, 60, 3000)
     start = np.r_[0, np.cumsum(length)[:-1]]
     xy = rng.random((2, int(length.sum())), dtype=np.float32).T
-    lines = Streamlines(xy=xy, tangent=xy, curve=np.repeat(np.arange(len(length)), length).astype(np.int32),
-                        start=start, length=length, end_reason=np.zeros((len(length), 2), np.int8))
+    lines = Streamlines(xy=xy, tangent=xy, start=start, length=length,
+                        end_reason=np.zeros((len(length), 2), np.int8))
     old_chunk = stage.STORED_CHUNK
     try:
         for chunk in (1, 7, 1000):
@@ -275,8 +275,6 @@ def test_cross_sections_kernel_holds_no_curve_id_a_sample_and_int32_ids():
     0.14 GB on a 4x4 page, dropped before it runs), counts its cells and keeps its crossings' vertex and
     curve ids in int32 (−36 MB and −43 to −64 MB at its peak there); :func:`raw_graph` widens the ids to
     int64 once the samples are gone, so the raw graph is the one of per-sample ids."""
-    import dataclasses
-
     from stages.graph.cross_section import _cell_index
     from stages.graph.raw_graph import raw_graph, take_cross_sections
 
@@ -293,7 +291,7 @@ def test_cross_sections_kernel_holds_no_curve_id_a_sample_and_int32_ids():
         "station_spacing", "cover_factor", "min_station_gap", "max_gap", "max_section_length", "ambiguity",
         "lane_pad")})
     sections = take_cross_sections(np.asarray(f["c0"]), np.asarray(f["c2"]), band,
-                                   np.asarray(f["singular"]).astype(bool), dataclasses.replace(lines, curve=None),
+                                   np.asarray(f["singular"]).astype(bool), lines,
                                    **params)
     mv, mc = sections[5], sections[6]
     assert len(mv) > 10 and mv.dtype == np.int32 and mc.dtype == np.int32
@@ -301,3 +299,81 @@ def test_cross_sections_kernel_holds_no_curve_id_a_sample_and_int32_ids():
     raw = raw_graph(sections)
     assert raw.member_vertex.dtype == np.int64 and raw.member_curve.dtype == np.int64
     assert np.array_equal(raw.member_curve, mc) and np.array_equal(raw.member_vertex, mv)
+
+
+# A wide straight band under the uniform field z⁴ − 1 (roots ±1, ±i): one 1000-px lane per half row and
+# pixel row, 4 M samples on a 256 × 2048 page, traced and cut in a fresh process whose peak (VmHWM, reset
+# by '5' to /proc/self/clear_refs, Linux >= 4.0) counts numba's arrays, which tracemalloc does not see.
+_WIDE = """
+import gc, sys, numpy as np
+from stages.graph.trace import trace_streamlines
+from stages.graph.raw_graph import take_cross_sections
+def status(k):
+    with open('/proc/self/status') as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(k))
+def page(h, w, rows, cols):
+    band = np.zeros((h, w), bool)
+    band[rows[0]:rows[1], cols[0]:cols[1]] = True
+    c0 = np.where(band, np.complex64(-1), np.complex64(0))
+    return band, c0, np.zeros_like(c0), np.zeros_like(band), np.where(band, np.complex64(1), np.complex64(0))
+kw = dict(step=0.1, max_half_samples=10000, merge_distance=0.1, merge_cos=0.98, self_merge_lag=30, tie=1e-3)
+sk = dict(step=0.1, tie=1e-3, station_spacing=1.0, cover_factor=0.6, min_station_gap=0.3, max_gap=1.5,
+          max_section_length=30.0, ambiguity=0.1, lane_pad=0.5)
+band, c0, c2, sing, seed = page(16, 64, (4, 12), (4, 60))     # compiled here when no shipped kernel loads
+take_cross_sections(c0, c2, band, sing, trace_streamlines(c0, c2, band, sing, seed, **kw), **sk)
+band, c0, c2, sing, seed = page(256, 2048, (28, 228), (24, 2024))
+def peak(run):
+    gc.collect()
+    with open('/proc/self/clear_refs', 'w') as f:
+        f.write('5')
+    before = status('VmRSS')
+    out = run()
+    return out, status('VmHWM') - before, status('VmRSS') - before
+lines, trace_peak, trace_held = peak(lambda: trace_streamlines(c0, c2, band, sing, seed, **kw))
+n = len(lines.xy)
+if sys.argv[1] == 'trace':
+    print(n, trace_peak / n, trace_held / n)
+else:
+    s, sec_peak, _ = peak(lambda: take_cross_sections(c0, c2, band, sing, lines, **sk))
+    # what the kernel needs: the pixels' int32 index, 16 int32 cell starts a band pixel, an int32 sample
+    # id a sample, the crossings' int32 vertex, int32 curve and float64 parameter
+    need = 4 * band.size + 64 * int(band.sum()) + 4 * n + 16 * len(s[5])
+    print(n, (sec_peak - need) / n)
+"""
+
+
+def _wide(what: str) -> list[float]:
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _WIDE, what], capture_output=True, text=True, cwd=ROOT, check=True)
+    return [float(v) for v in out.stdout.split()]
+
+
+def test_trace_holds_20_bytes_a_sample():
+    """The trace kernel keeps x, y, the tangent and the pixels' lists, 20 bytes a sample: no curve id and no
+    in-curve step a sample (they follow from the sample's id), and writes (2, N) rows, not stacked after
+    it.  Was 28 bytes in the kernel and 28 again at the stack (20 held + 8): 0.96 GB on a 4x4 page."""
+    n, peak, held = _wide("trace")
+    assert n > 3_000_000
+    assert peak < 25          # measured 22.1 (30.2 on the old kernel and its stack)
+    assert held < 18.5        # x, y, tangent: 16 (20.6 with the curve ids)
+
+
+def test_cross_sections_hold_a_bit_a_sample_beside_their_index():
+    """Beside its sub-cell index and its crossings, the cross-sections' kernel holds one bit a sample (which
+    are covered) and never two crossing buffers at once (room for a crossing every 4 samples from the
+    start).  Was a byte a sample and the doubling's old and new buffers: +3.4 bytes a sample here."""
+    n, extra = _wide("sections")
+    assert n > 3_000_000
+    assert extra < 1.0        # measured −0.3 (3.4 on the old kernel)
+
+
+def test_streamlines_keep_no_curve_id_a_sample():
+    """The curve ids are made on demand from the curves' starts and lengths, not stored a sample."""
+    import dataclasses
+
+    assert "curve" not in {f.name for f in dataclasses.fields(Streamlines)}
+    lines = _lines()
+    np.testing.assert_array_equal(lines.curve, np.repeat(np.arange(len(lines.start)), lines.length))
+    assert lines.curve.dtype == np.int32
