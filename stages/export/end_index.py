@@ -132,12 +132,35 @@ class _EndIndex:
         return [o for o in self.synthetic_near(p) if self.state[o][1] < 0]
 
 
-def near_pairs(P: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+#: Points whose cell neighbours :func:`near_pairs` looks up at once: its candidate pairs (tens per
+#: point) then stay a few megabytes, the size of one drawing's, however large the page.
+NEAR_PAIRS_CHUNK = 16384
+
+
+def near_pairs(P: np.ndarray, r: float, keep=None, chunk: int = NEAR_PAIRS_CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """All pairs i < j of points within ``r`` of each other, by square cells of side ``r``.
 
     Each point meets the points of its own cell and of four of its neighbours (the other four see it
     from theirs): time ∝ the pairs within ~2r, linear in the ink for a bounded width. A grid of our
     own, not a k-d tree: a λ re-run of the export imports no ``scipy.spatial`` (tests/stages/test_export.py).
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        (n, 2) points.
+    r : float
+        Largest distance (also the cell side).
+    keep : callable, optional
+        ``keep(i, j, d)`` → bool mask of the pairs (index arrays, distances) to return: applied to
+        ``chunk`` points' pairs at a time, so that only the kept pairs of a large page are ever held.
+    chunk : int
+        Points whose pairs are found at once (the result does not depend on it).
+
+    Returns
+    -------
+    i, j : numpy.ndarray
+        The pairs, ordered by the neighbour cell they were found in, then ``i``, then ``j``'s place in
+        its cell (the order of one pass over all points).
     """
     none = np.zeros(0, np.int64)
     if len(P) < 2 or r <= 0:
@@ -148,19 +171,27 @@ def near_pairs(P: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
     key = (cell[:, 0] + 1) * span + cell[:, 1] + 1
     order = np.argsort(key, kind="stable")
     skey = key[order]
-    out_i, out_j = [], []
-    for dx, dy in ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1)):
-        lo = np.searchsorted(skey, key + dx * span + dy, "left")
-        hi = np.searchsorted(skey, key + dx * span + dy, "right")
-        n = hi - lo
-        if not n.sum():
-            continue
-        src = np.repeat(np.arange(len(P)), n)
-        dst = order[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
-        keep = src < dst if (dx, dy) == (0, 0) else np.ones(len(src), bool)
-        src, dst = src[keep], dst[keep]
-        near = np.hypot(*(P[src] - P[dst]).T) <= r
-        out_i.append(src[near]), out_j.append(dst[near])
+    out_i, out_j, out_o = [], [], []
+    for s0 in range(0, len(P), max(int(chunk), 1)):
+        ckey = key[s0:s0 + chunk]
+        for o, (dx, dy) in enumerate(((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))):
+            lo = np.searchsorted(skey, ckey + dx * span + dy, "left")
+            hi = np.searchsorted(skey, ckey + dx * span + dy, "right")
+            n = hi - lo
+            total = int(n.sum())
+            if not total:
+                continue
+            src = s0 + np.repeat(np.arange(len(ckey)), n)
+            dst = order[np.repeat(lo, n) + np.arange(total) - np.repeat(np.cumsum(n) - n, n)]
+            if (dx, dy) == (0, 0):
+                src, dst = src[src < dst], dst[src < dst]
+            d = np.hypot(*(P[src] - P[dst]).T)
+            near = d <= r
+            if keep is not None:
+                near &= keep(src, dst, d)
+            out_i.append(src[near]), out_j.append(dst[near]), out_o.append(np.full(int(near.sum()), o, np.int8))
     if not out_i:
         return none, none
-    return np.concatenate(out_i), np.concatenate(out_j)
+    # Chunk by chunk, the pairs come neighbour cell by neighbour cell: put them back into one pass's order.
+    by_cell = np.argsort(np.concatenate(out_o), kind="stable")
+    return np.concatenate(out_i)[by_cell], np.concatenate(out_j)[by_cell]
