@@ -133,12 +133,12 @@ def _free_ends(pts: list[np.ndarray], width: list[float]) -> tuple[list, list, l
     # Per end: how many other curves come near, and (for one) the first and last of its vertices there.
     order = np.lexsort((v, q))
     q, v = q[order], v[order]
-    first = np.r_[True, q[1:] != q[:-1]]
+    first = np.r_[True, q[1:] != q[:-1]][:len(q)]
+    last = np.r_[first[1:], True][:len(q)]
     curves_near = np.zeros(len(cand), np.int64)
-    np.add.at(curves_near, q, np.r_[True, (q[1:] != q[:-1]) | (owner[v[1:]] != owner[v[:-1]])])
+    np.add.at(curves_near, q, np.r_[True, (q[1:] != q[:-1]) | (owner[v[1:]] != owner[v[:-1]])][:len(q)])
     lo, hi = np.zeros(len(cand), np.int64), np.zeros(len(cand), np.int64)
-    lo[q[first]] = v[first]
-    hi[q[np.r_[first[1:], True]]] = v[np.r_[first[1:], True]]
+    lo[q[first]], hi[q[last]] = v[first], v[last]
     ends, where, only = [], [], []
     for k, (n, e) in enumerate(cand):
         if loop[k]:

@@ -134,6 +134,29 @@ def test_near_pairs_are_all_pairs_within_the_radius():
     assert got == want and len(i) == len(got)
 
 
+def test_near_pairs_found_chunk_by_chunk_and_filtered_are_those_of_one_pass():
+    rng = np.random.default_rng(5)
+    pts = np.round(rng.uniform(0, 60, (900, 2)) * 2) / 2             # half pixels: equal distances
+    i, j = _near_pairs(pts, 3.0)
+    keep = lambda a, b, d: (a + b) % 3 > 0                             # noqa: E731
+    for chunk in (1, 7, 100, 10_000):
+        ci, cj = _near_pairs(pts, 3.0, keep, chunk)
+        mine = (i + j) % 3 > 0
+        np.testing.assert_array_equal(ci, i[mine]), np.testing.assert_array_equal(cj, j[mine])
+
+
+def test_points_near_are_all_points_within_each_query_radius():
+    from stages.export.end_index import points_near
+
+    rng = np.random.default_rng(4)
+    pts, qs = rng.uniform(-20, 40, (700, 2)), rng.uniform(-25, 45, (90, 2))
+    r = rng.uniform(0.5, 9.0, len(qs))
+    q, p = points_near(pts, qs, r, 2.0)
+    d = (pts[None] - qs[:, None])
+    want = set(zip(*np.nonzero(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] <= (r * r)[:, None])))
+    assert set(zip(q.tolist(), p.tolist())) == want and len(q) == len(want) and np.all(np.diff(q) >= 0)
+
+
 def test_merging_is_near_linear_in_the_ink(monkeypatch):
     # Many short parallel pairs over a page: the pairs searched grow with the ink, not its square.
     import stages.export.passes as passes
