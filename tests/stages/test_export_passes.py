@@ -138,7 +138,9 @@ def test_near_pairs_found_chunk_by_chunk_and_filtered_are_those_of_one_pass():
     rng = np.random.default_rng(5)
     pts = np.round(rng.uniform(0, 60, (900, 2)) * 2) / 2             # half pixels: equal distances
     i, j = _near_pairs(pts, 3.0)
-    keep = lambda a, b, d: (a + b) % 3 > 0                             # noqa: E731
+    def keep(a, b, d):
+        return (a + b) % 3 > 0
+
     for chunk in (1, 7, 100, 10_000):
         ci, cj = _near_pairs(pts, 3.0, keep, chunk)
         mine = (i + j) % 3 > 0
@@ -307,7 +309,7 @@ def test_rounds_on_the_changed_curves_merge_as_full_rounds():
 def test_later_rounds_look_only_near_the_changed_curves(monkeypatch):
     # A page of single lines (nothing to merge) and one line drawn three times (two passes merged in
     # the first round, the third in the second): later rounds look at that line's samples, not the page's.
-    import stages.export.passes as passes
+    from stages.export import passes
 
     seen = []
     real = passes._partners
