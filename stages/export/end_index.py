@@ -44,17 +44,24 @@ class _PointGrid:
 
     def __init__(self, cell: float):
         self.cell = float(cell)
-        self.cells: dict[tuple[int, int], dict] = {}   # cell -> {owner: indices of its points there}
+        self.cells: dict[int, dict] = {}               # cell -> {owner: indices of its points there}
         self.owned: dict = {}                           # owner -> its cells
+
+    def _keys(self, points: np.ndarray) -> np.ndarray:
+        """Cell keys of points: column · 2³² + row (one int: ordered as the (column, row) pairs)."""
+        ij = np.floor(np.asarray(points, np.float64).reshape(-1, 2) / self.cell).astype(np.int64)
+        return (ij[:, 0] << 32) + ij[:, 1]
 
     def add(self, owner, points: np.ndarray) -> None:
         """Add an owner's points ((n, 2); indices are rows)."""
-        keys: dict = {}
-        for n, ij in enumerate(np.floor(np.asarray(points, np.float64) / self.cell).astype(np.int64).tolist()):
-            keys.setdefault(tuple(ij), []).append(n)
-        for key, idx in keys.items():
-            self.cells.setdefault(key, {})[owner] = idx
-        self.owned[owner] = list(keys)
+        # Grouped by numpy, not point by point: a page's grids hold hundreds of thousands of vertices.
+        key = self._keys(points)
+        order = np.argsort(key, kind="stable")
+        cut = (np.flatnonzero(key[order][1:] != key[order][:-1]) + 1).tolist()
+        keys, rows = key[order][[0] + cut].tolist() if len(key) else [], order.tolist()
+        for key_, lo, hi in zip(keys, [0] + cut, cut + [len(rows)]):
+            self.cells.setdefault(key_, {})[owner] = rows[lo:hi]
+        self.owned[owner] = keys
 
     def remove(self, owner) -> None:
         """Remove all points of an owner (none: nothing happens)."""
@@ -69,15 +76,14 @@ class _PointGrid:
 
         A superset of the points within ``r``: callers test the distance themselves.
         """
-        ij = np.floor(np.asarray(points, np.float64).reshape(-1, 2) / self.cell).astype(np.int64)
         d = int(np.ceil(r / self.cell))
-        if len(ij) == 1:                 # one point (most queries): its cells without numpy's unique
-            x, y = ij[0].tolist()
-            keys = [(x + a, y + b) for a in range(-d, d + 1) for b in range(-d, d + 1)]
+        step = np.arange(-d, d + 1)
+        around = ((step[:, None] << 32) + step).ravel()          # (column, row) offsets, in order
+        key = self._keys(points)
+        if len(key) == 1:                # one point (most queries): its cells without numpy's unique
+            keys = (int(key[0]) + around).tolist()
         else:
-            offsets = np.stack(np.meshgrid(np.arange(-d, d + 1), np.arange(-d, d + 1)), -1).reshape(-1, 2)
-            keys = map(tuple, np.unique((np.unique(ij, axis=0)[:, None, :] + offsets[None]).reshape(-1, 2),
-                                        axis=0).tolist())
+            keys = np.unique((np.unique(key)[:, None] + around).ravel()).tolist()
         out: dict = {}
         for key in keys:
             for owner, idx in self.cells.get(key, {}).items():
@@ -132,12 +138,89 @@ class _EndIndex:
         return [o for o in self.synthetic_near(p) if self.state[o][1] < 0]
 
 
-def near_pairs(P: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+def points_near(P: np.ndarray, Q: np.ndarray, r: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (q, p) of a query point ``Q[q]`` and a point ``P[p]`` within its own radius ``r[q]``.
+
+    The squared-distance test of :func:`_within`, each query looking in the cells (side ``cell``)
+    its radius reaches; all queries at once (where :meth:`_PointGrid.near` answers one at a time).
+
+    Parameters
+    ----------
+    P, Q : numpy.ndarray
+        (n, 2) points and (m, 2) queries.
+    r : numpy.ndarray
+        (m,) radius of each query.
+    cell : float
+        Cell side.
+
+    Returns
+    -------
+    q, p : numpy.ndarray
+        Index pairs, by query, then cell, then point.
+    """
+    none = np.zeros(0, np.int64)
+    r = np.asarray(r, np.float64)
+    if not len(P) or not len(Q):
+        return none, none
+    reach = np.ceil(r / cell).astype(np.int64)             # cells each way
+    cp, cq = np.floor(P / cell).astype(np.int64), np.floor(Q / cell).astype(np.int64)
+    base = np.minimum(cp.min(axis=0), cq.min(axis=0)) - int(reach.max())
+    cp, cq = cp - base, cq - base
+    span = int(max(cp[:, 1].max(), cq[:, 1].max()) + reach.max() + 1)
+    key = cp[:, 0] * span + cp[:, 1]
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    out_q, out_p = [], []
+    for k in np.unique(reach).tolist():
+        sel = np.flatnonzero(reach == k)
+        step = np.arange(-k, k + 1)
+        look = ((cq[sel, 0] * span + cq[sel, 1])[:, None] + (step[:, None] * span + step).ravel()).ravel()
+        lo, hi = np.searchsorted(skey, look, "left"), np.searchsorted(skey, look, "right")
+        n = hi - lo
+        total = int(n.sum())
+        if not total:
+            continue
+        q = np.repeat(np.repeat(sel, (2 * k + 1) ** 2), n)
+        p = order[np.repeat(lo, n) + np.arange(total) - np.repeat(np.cumsum(n) - n, n)]
+        d = P[p] - Q[q]
+        ok = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r[q] * r[q]
+        out_q.append(q[ok]), out_p.append(p[ok])
+    if not out_q:
+        return none, none
+    q, p = np.concatenate(out_q), np.concatenate(out_p)
+    by_query = np.argsort(q, kind="stable")
+    return q[by_query], p[by_query]
+
+
+#: Points whose cell neighbours :func:`near_pairs` looks up at once: its candidate pairs (tens per
+#: point) then stay a few megabytes, the size of one drawing's, however large the page.
+NEAR_PAIRS_CHUNK = 16384
+
+
+def near_pairs(P: np.ndarray, r: float, keep=None, chunk: int = NEAR_PAIRS_CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """All pairs i < j of points within ``r`` of each other, by square cells of side ``r``.
 
     Each point meets the points of its own cell and of four of its neighbours (the other four see it
     from theirs): time ∝ the pairs within ~2r, linear in the ink for a bounded width. A grid of our
     own, not a k-d tree: a λ re-run of the export imports no ``scipy.spatial`` (tests/stages/test_export.py).
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        (n, 2) points.
+    r : float
+        Largest distance (also the cell side).
+    keep : callable, optional
+        ``keep(i, j, d)`` → bool mask of the pairs (index arrays, distances) to return: applied to
+        ``chunk`` points' pairs at a time, so that only the kept pairs of a large page are ever held.
+    chunk : int
+        Points whose pairs are found at once (the result does not depend on it).
+
+    Returns
+    -------
+    i, j : numpy.ndarray
+        The pairs, ordered by the neighbour cell they were found in, then ``i``, then ``j``'s place in
+        its cell (the order of one pass over all points).
     """
     none = np.zeros(0, np.int64)
     if len(P) < 2 or r <= 0:
@@ -148,19 +231,27 @@ def near_pairs(P: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
     key = (cell[:, 0] + 1) * span + cell[:, 1] + 1
     order = np.argsort(key, kind="stable")
     skey = key[order]
-    out_i, out_j = [], []
-    for dx, dy in ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1)):
-        lo = np.searchsorted(skey, key + dx * span + dy, "left")
-        hi = np.searchsorted(skey, key + dx * span + dy, "right")
-        n = hi - lo
-        if not n.sum():
-            continue
-        src = np.repeat(np.arange(len(P)), n)
-        dst = order[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
-        keep = src < dst if (dx, dy) == (0, 0) else np.ones(len(src), bool)
-        src, dst = src[keep], dst[keep]
-        near = np.hypot(*(P[src] - P[dst]).T) <= r
-        out_i.append(src[near]), out_j.append(dst[near])
+    out_i, out_j, out_o = [], [], []
+    for s0 in range(0, len(P), max(int(chunk), 1)):
+        ckey = key[s0:s0 + chunk]
+        for o, (dx, dy) in enumerate(((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))):
+            lo = np.searchsorted(skey, ckey + dx * span + dy, "left")
+            hi = np.searchsorted(skey, ckey + dx * span + dy, "right")
+            n = hi - lo
+            total = int(n.sum())
+            if not total:
+                continue
+            src = s0 + np.repeat(np.arange(len(ckey)), n)
+            dst = order[np.repeat(lo, n) + np.arange(total) - np.repeat(np.cumsum(n) - n, n)]
+            if (dx, dy) == (0, 0):
+                src, dst = src[src < dst], dst[src < dst]
+            d = np.hypot(*(P[src] - P[dst]).T)
+            near = d <= r
+            if keep is not None:
+                near &= keep(src, dst, d)
+            out_i.append(src[near]), out_j.append(dst[near]), out_o.append(np.full(int(near.sum()), o, np.int8))
     if not out_i:
         return none, none
-    return np.concatenate(out_i), np.concatenate(out_j)
+    # Chunk by chunk, the pairs come neighbour cell by neighbour cell: put them back into one pass's order.
+    by_cell = np.argsort(np.concatenate(out_o), kind="stable")
+    return np.concatenate(out_i)[by_cell], np.concatenate(out_j)[by_cell]

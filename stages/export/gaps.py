@@ -9,7 +9,7 @@ import numpy as np
 from scipy.ndimage import label
 
 from stages.export.corners import join_linked
-from stages.export.end_index import _PointGrid, _within, near_pairs
+from stages.export.end_index import near_pairs, points_near
 from stages.export.curve_ends import end_direction
 from stages.geometry import arc_length
 
@@ -80,16 +80,13 @@ def close_gaps(curves: list[dict], max_px: float, max_widths: float, max_turn_de
     return join_linked(curves, link, corner_joints=False) if link else curves
 
 
-def _tip_owner(pts: list[np.ndarray], close: dict, reach: float) -> tuple[int, int] | None:
-    """``(curve, end)`` when the points ``close`` to an end all lie on one other curve within ``reach``
-    of arc from one of its ends (that curve's tip); None otherwise."""
-    if len(close) != 1:
-        return None
-    (o, idx), = close.items()
+def _tip_owner(pts: list[np.ndarray], o: int, first: int, last: int, reach: float) -> tuple[int, int] | None:
+    """``(o, end)`` when the vertices ``first`` … ``last`` of curve ``o`` close to an end lie within
+    ``reach`` of arc from one of its ends (that curve's tip); None otherwise."""
     arc = arc_length(pts[o])
-    if arc[idx].max() <= reach:
+    if arc[last] <= reach:
         return o, 0
-    if arc[-1] - arc[idx].min() <= reach:
+    if arc[-1] - arc[first] <= reach:
         return o, 1
     return None
 
@@ -99,13 +96,8 @@ def _curves_free_ends(curves: list[dict], kept_keypoints: frozenset = frozenset(
     """The curves' points and widths (0 for none), and :func:`_free_ends` of them, less the ends at a
     keypoint of ``kept_keypoints`` (one the user added or retyped: no step joins an artist's keypoint away)."""
     pts = [np.asarray(c["points"], np.float64).reshape(-1, 2) for c in curves]
-    # The export's own grid, not scipy.spatial: a λ re-run (flow → select → export) then loads no
-    # scipy.spatial, whose import cost about a tenth of that re-run.
-    grid = _PointGrid(FREE_PX)
-    for n, p in enumerate(pts):
-        grid.add(n, p)
     width = [float(c["width"]) if c.get("width") is not None else 0.0 for c in curves]
-    ends, where, only = _free_ends(pts, width, grid)
+    ends, where, only = _free_ends(pts, width)
     if kept_keypoints:
         keep = [k for k, (n, e) in enumerate(ends) if _end_keypoint(curves[n], e) not in kept_keypoints]
         ends, where, only = [ends[k] for k in keep], [where[k] for k in keep], [only[k] for k in keep]
@@ -120,29 +112,47 @@ def _pairs_within(where: np.ndarray, reach: float) -> list[tuple[int, int]]:
     return sorted(zip(np.minimum(i, j).tolist(), np.maximum(i, j).tolist()))
 
 
-def _free_ends(pts: list[np.ndarray], width: list[float], grid: "_PointGrid") -> tuple[list, list, list]:
+def _free_ends(pts: list[np.ndarray], width: list[float]) -> tuple[list, list, list]:
     """The free curve ends: ``(curve, end)``, its point, and the ``(curve, end)`` of the one other
     curve's tip that is its only neighbour within max(FREE_PX, width) (None when it has none)."""
+    cand = [(n, e) for n, p in enumerate(pts) if len(p) >= 2 for e in (0, 1)]
+    if not cand:
+        return [], [], []
+    at = np.array([pts[n][0 if e == 0 else -1] for n, e in cand])
+    near = np.array([max(FREE_PX, width[n]) for n, _ in cand])
+    loop = np.array([np.hypot(*(pts[n][-1 if e == 0 else 0] - q)) for (n, e), q in zip(cand, at)]) <= near
+    # The vertices of every curve near each end, all ends at once (the export's own grid, not
+    # scipy.spatial: a λ re-run — flow → select → export — then loads no scipy.spatial, whose import
+    # cost about a tenth of that re-run).
+    owner = np.repeat(np.arange(len(pts)), [len(p) for p in pts])
+    start = np.r_[0, np.cumsum([len(p) for p in pts])]
+    q, v = points_near(np.concatenate(pts), at, near, FREE_PX)
+    end_curve = np.array([n for n, _ in cand])
+    other = owner[v] != end_curve[q]
+    q, v = q[other], v[other]
+    # Per end: how many other curves come near, and (for one) the first and last of its vertices there.
+    order = np.lexsort((v, q))
+    q, v = q[order], v[order]
+    first = np.r_[True, q[1:] != q[:-1]][:len(q)]
+    last = np.r_[first[1:], True][:len(q)]
+    curves_near = np.zeros(len(cand), np.int64)
+    np.add.at(curves_near, q, np.r_[True, (q[1:] != q[:-1]) | (owner[v[1:]] != owner[v[:-1]])][:len(q)])
+    lo, hi = np.zeros(len(cand), np.int64), np.zeros(len(cand), np.int64)
+    lo[q[first]], hi[q[last]] = v[first], v[last]
     ends, where, only = [], [], []
-    for n, p in enumerate(pts):
-        if len(p) < 2:
-            continue
-        near = max(FREE_PX, width[n])
-        for e in (0, 1):
-            q = p[0 if e == 0 else -1]
-            if np.hypot(*(p[-1 if e == 0 else 0] - q)) <= near:
-                continue                                   # a closed loop's end meets its own start
-            close = {o: np.asarray(idx)[_within(pts[o][idx], q, near)]
-                     for o, idx in grid.near(q, near).items() if o != n}
-            close = {o: idx for o, idx in close.items() if len(idx)}
-            partner = None
-            if close:
-                partner = _tip_owner(pts, close, TIP_RADII * near)
-                if partner is None:
-                    continue                               # at a junction, or beside another curve
-            ends.append((n, e))
-            where.append(q)
-            only.append(partner)
+    for k, (n, e) in enumerate(cand):
+        if loop[k]:
+            continue                                       # a closed loop's end meets its own start
+        partner = None
+        if curves_near[k]:
+            o = int(owner[lo[k]])
+            partner = _tip_owner(pts, o, lo[k] - start[o], hi[k] - start[o], TIP_RADII * near[k]) \
+                if curves_near[k] == 1 else None
+            if partner is None:
+                continue                                   # at a junction, or beside another curve
+        ends.append((n, e))
+        where.append(at[k])
+        only.append(partner)
     return ends, where, only
 
 

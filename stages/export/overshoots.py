@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.export.curve_ends import JOINABLE_TYPES, end_direction
-from stages.export.end_index import _PointGrid, _within
+from stages.export.end_index import points_near
 from stages.geometry import arc_length, polyline_length
 
 _MIDPOINT_CELL_PX = 4.0     # cell of the segment-midpoint grid of the overshoot extension (a few segments per cell)
@@ -76,24 +76,20 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
     """
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
     h, w_img = mask.shape
-    # Every curve's segments, stacked once, for the clearance test; a grid of their midpoints finds
-    # the few near a tip (a segment within r of it has its midpoint within r + half the longest
-    # segment), where testing every segment of the drawing for every end was quadratic. (The
+    # Every curve's segments, stacked once, for the clearance test; their midpoints near each tip are
+    # found for all tips at once (a segment within r of it has its midpoint within r + half the
+    # longest segment), where testing every segment of the drawing for every end was quadratic. (The
     # export's own grid, not a scipy k-d tree: a λ re-run then loads no scipy.spatial.)
     seg_a = [c["points"][:-1] if len(c["points"]) > 1 else c["points"] for c in curves]
     seg_b = [c["points"][1:] if len(c["points"]) > 1 else c["points"] for c in curves]
-    first = np.cumsum([0] + [len(a) for a in seg_a])
-    mids = _PointGrid(_MIDPOINT_CELL_PX)
-    for i, (a, b) in enumerate(zip(seg_a, seg_b)):
-        mids.add(i, 0.5 * (a + b))
+    seg_owner = np.repeat(np.arange(len(curves)), [len(a) for a in seg_a])
     seg_a = np.concatenate(seg_a) if curves else np.zeros((0, 2))
     seg_b = np.concatenate(seg_b) if curves else np.zeros((0, 2))
     half = 0.5 * float(np.hypot(*(seg_b - seg_a).T).max()) if len(seg_a) else 0.0
-    adds = []
+    tips = []                                              # (curve, end, tip, length) of each candidate
     for i, c in enumerate(curves):
         w = float(c.get("width") or 0.0)
         lo, hi = max(min_px, min_widths * w), max(max_px, max_widths * w)
-        ext = [None, None]
         for e in (0, 1):
             if c["end_types"][e] not in JOINABLE_TYPES or polyline_length(c["points"]) <= 1e-9:
                 continue
@@ -108,23 +104,24 @@ def extend_overshoots(curves: list[dict], mask: np.ndarray, tangent_px: float, m
             if ink.all():
                 continue                                   # the ink goes on: not an overshoot
             ln = float(s[np.argmin(ink)]) - 0.5 * w
-            if not lo <= ln <= hi:
-                continue
-            tip = p + ln * d
-            # Other curves, and this curve's own far part (a closed loop's other end, a hairpin).
-            pts = c["points"] if e == 0 else c["points"][::-1]
-            arc = arc_length(pts)
-            own = pts[arc > 2.0 * ln]
-            reach = clearance * ln + half
-            others = np.array([first[o] + k for o, idx in mids.near(tip, reach).items() if o != i for k in idx],
-                              np.int64)
-            others = others[_within(0.5 * (seg_a[others] + seg_b[others]), tip, reach)]
-            near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
-                       _distance_to_polyline(tip, own) if len(own) else np.inf)
-            if near < clearance * ln:
-                continue
-            ext[e] = (tip, ln)
-        adds.append(ext)
+            if lo <= ln <= hi:
+                tips.append((i, e, p + ln * d, ln))
+    adds = [[None, None] for _ in curves]
+    reach = np.array([clearance * ln + half for _, _, _, ln in tips])
+    at, seg = points_near(0.5 * (seg_a + seg_b), np.array([t for _, _, t, _ in tips]).reshape(-1, 2), reach,
+                          _MIDPOINT_CELL_PX)
+    keep = seg_owner[seg] != np.array([i for i, _, _, _ in tips], np.int64)[at] if len(at) else np.zeros(0, bool)
+    at, seg = at[keep], seg[keep]
+    bounds = np.searchsorted(at, np.arange(len(tips) + 1))
+    for k, (i, e, tip, ln) in enumerate(tips):
+        # Other curves, and this curve's own far part (a closed loop's other end, a hairpin).
+        pts = curves[i]["points"] if e == 0 else curves[i]["points"][::-1]
+        own = pts[arc_length(pts) > 2.0 * ln]
+        others = seg[bounds[k]:bounds[k + 1]]
+        near = min(_distance_to_segments(tip, seg_a[others], seg_b[others]),
+                   _distance_to_polyline(tip, own) if len(own) else np.inf)
+        if near >= clearance * ln:
+            adds[i][e] = (tip, ln)
     for c, ext in zip(curves, adds):
         if ext == [None, None]:
             continue

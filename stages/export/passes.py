@@ -24,7 +24,9 @@ comes after.
 
 Neighbours are found by a grid of the curves' samples (1 px apart) with cells of the largest merge
 distance, so the work is linear in the ink for a bounded stroke width; merges repeat in rounds (each
-curve in at most one merge per round) until none is left.
+curve in at most one merge per round) until none is left, each round after the first looking only
+at the curves that changed in the last and those near them (a page's later rounds cost what its
+few merges touch, not another pass over the page).
 """
 
 from __future__ import annotations
@@ -44,26 +46,31 @@ _ATTACH_WIDTHS = 0.75     # a curve end this close to another curve ends on it (
 _STOP_WIDTHS = 1.0        # a pass that stops beside one that goes on ends within this much arc of the run
 
 
-def _samples(curves: list[dict], widths: np.ndarray):
-    """Every curve resampled ``_STEP_PX`` apart: points, unit tangents, curve index, arc, offsets."""
-    pts, tan, arcs, owner, offsets = [], [], [], [], [0]
-    for k, c in enumerate(curves):
-        p, s = resample_uniform(np.asarray(c["points"], np.float64), _STEP_PX)
-        # Tangents over ±2 samples: a pixel's jitter of the flowed curve does not turn them.
-        lo, hi = np.maximum(np.arange(len(p)) - 2, 0), np.minimum(np.arange(len(p)) + 2, len(p) - 1)
-        t = p[hi] - p[lo]
-        t /= np.maximum(np.hypot(*t.T), 1e-12)[:, None]
-        pts.append(p), tan.append(t), arcs.append(s), owner.append(np.full(len(p), k))
-        offsets.append(offsets[-1] + len(p))
-    return (np.concatenate(pts), np.concatenate(tan), np.concatenate(owner), np.concatenate(arcs),
-            np.asarray(offsets), widths[np.concatenate(owner)])
+def _curve_samples(c: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A curve resampled ``_STEP_PX`` apart: points, unit tangents, arcs."""
+    p, s = resample_uniform(np.asarray(c["points"], np.float64), _STEP_PX)
+    # Tangents over ±2 samples: a pixel's jitter of the flowed curve does not turn them.
+    lo, hi = np.maximum(np.arange(len(p)) - 2, 0), np.minimum(np.arange(len(p)) + 2, len(p) - 1)
+    t = p[hi] - p[lo]
+    t /= np.maximum(np.hypot(*t.T), 1e-12)[:, None]
+    return p, t, s
 
 
-def _partners(P, T, owner, arc, W, max_gap_widths: float, max_angle_deg: float):
+def _samples(per_curve: list[tuple], widths: np.ndarray):
+    """Every curve's :func:`_curve_samples` in one: points, unit tangents, curve index, arc, offsets, widths."""
+    owner = np.repeat(np.arange(len(per_curve)), [len(p) for p, _, _ in per_curve])
+    offsets = np.r_[0, np.cumsum([len(p) for p, _, _ in per_curve])]
+    return (np.concatenate([p for p, _, _ in per_curve]), np.concatenate([t for _, t, _ in per_curve]), owner,
+            np.concatenate([s for _, _, s in per_curve]), offsets, widths[owner])
+
+
+def _partners(P, T, owner, arc, W, max_gap_widths: float, max_angle_deg: float, cell: float | None = None):
     """Sample pairs of two passes: near, near-parallel, each sample's nearest on each other curve.
 
     A sample of the same curve counts only running the other way (a retrace) and more than the
-    hairpin's length of arc away, so a curve's own neighbouring samples never pair.
+    hairpin's length of arc away, so a curve's own neighbouring samples never pair. ``cell`` is the
+    side of the neighbour grid (the largest merge distance; default that of these samples): the
+    nearest of two samples at equal distances is the first the grid finds.
 
     Returns
     -------
@@ -73,17 +80,26 @@ def _partners(P, T, owner, arc, W, max_gap_widths: float, max_angle_deg: float):
     """
     none = np.zeros(0, np.int64)
     r = max_gap_widths * W
-    i, j = _near_pairs(P, float(r.max()) if len(r) else 0.0)
+    cos_min = np.cos(np.radians(max_angle_deg))
+
+    def two_passes(i, j, d):
+        ok = d <= 0.5 * (r[i] + r[j])
+        near = np.flatnonzero(ok)              # the directions only of these (a fraction of the grid's)
+        i, j = i[near], j[near]
+        cos = np.einsum("ij,ij->i", T[i], T[j])
+        same = owner[i] == owner[j]
+        ok[near] = (np.abs(cos) >= cos_min) & (~same | ((cos < 0) & (np.abs(arc[i] - arc[j])
+                                                                      > 2.0 * np.maximum(r[i], r[j]))))
+        return ok
+
+    if cell is None:
+        cell = float(r.max()) if len(r) else 0.0
+    # The pairs filtered as they are found: a page's millions of pairs within the grid's cell (mostly
+    # a curve's own neighbouring samples) are never held at once.
+    i, j = _near_pairs(P, cell, two_passes)
     if not len(i):
         return none, none
     d = np.hypot(*(P[i] - P[j]).T)
-    cos = np.einsum("ij,ij->i", T[i], T[j])
-    same = owner[i] == owner[j]
-    ok = (d <= 0.5 * (r[i] + r[j])) & (np.abs(cos) >= np.cos(np.radians(max_angle_deg)))
-    ok &= ~same | ((cos < 0) & (np.abs(arc[i] - arc[j]) > 2.0 * np.maximum(r[i], r[j])))
-    i, j, d = i[ok], j[ok], d[ok]
-    if not len(i):
-        return none, none
     a, b, dd = np.r_[i, j], np.r_[j, i], np.r_[d, d]
     order = np.lexsort((dd, owner[b], a))
     a, b = a[order], b[order]
@@ -91,6 +107,17 @@ def _partners(P, T, owner, arc, W, max_gap_widths: float, max_angle_deg: float):
     a, b = a[first], b[first]
     order = np.lexsort((a, owner[b], owner[a]))
     return a[order], b[order]
+
+
+def _near_samples(P: np.ndarray, touched: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (sorted) of the samples in the grid cells (side ``cell``) at or next to a ``touched`` sample's."""
+    key = np.floor(P / cell).astype(np.int64)
+    key -= key.min(axis=0) - 1
+    span = int(key[:, 1].max()) + 2
+    flat = key[:, 0] * span + key[:, 1]
+    around = np.unique(flat[touched])
+    around = np.unique((around[:, None] + (np.arange(-1, 2)[:, None] * span + np.arange(-1, 2)).ravel()).ravel())
+    return np.flatnonzero(np.isin(flat, around))
 
 
 def _runs(i, j, owner, arc, W, min_run_widths: float):
@@ -305,14 +332,33 @@ def merge_passes(curves: list[dict], max_gap_widths: float, min_run_widths: floa
     """
     curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
     counts = [1] * len(curves)
+    # A pair of curves is looked at again only when one of them changed in the last round: two curves
+    # that did not merge then, as they are, do not now (each merge depends on its two curves alone),
+    # and a merge skipped because one of them merged with a third involves the changed curve.
+    touched, fallback_was = None, None         # None: all curves
+    per_curve = [_curve_samples(c) for c in curves]
     for _ in range(max_rounds):
         known = [c["width"] for c in curves if c.get("width")]
         fallback = float(np.median(known)) if known else _DEFAULT_WIDTH_PX
         widths = np.array([float(c["width"]) if c.get("width") else fallback for c in curves])
         if not len(curves):
             break
-        P, T, owner, arc, offsets, W = _samples(curves, widths)
-        i, j = _partners(P, T, owner, arc, W, max_gap_widths, max_angle_deg)
+        if fallback != fallback_was and len(known) < len(curves):
+            touched = None                     # the widths of the curves without one moved
+        fallback_was = fallback
+        cell = float(max_gap_widths * widths.max())   # the whole drawing's grid, as a first round's
+        P, T, owner, arc, offsets, W = _samples(per_curve, widths)
+        if touched is None:
+            i, j = _partners(P, T, owner, arc, W, max_gap_widths, max_angle_deg, cell)
+        else:
+            # Only the changed curves' samples and those within a cell of them: their pairs are
+            # found as among all samples (the same grid, the same order).
+            mine = np.isin(owner, touched)
+            sub = _near_samples(P, np.flatnonzero(mine), cell)
+            i, j = _partners(P[sub], T[sub], owner[sub], arc[sub], W[sub], max_gap_widths, max_angle_deg, cell)
+            i, j = sub[i], sub[j]
+            keep = mine[i] | mine[j]
+            i, j = i[keep], j[keep]
         used, dropped = set(), set()
         for _, a, b, ia, jb in _runs(i, j, owner, arc, W, min_run_widths):
             if a in used or b in used:
@@ -330,13 +376,16 @@ def merge_passes(curves: list[dict], max_gap_widths: float, min_run_widths: floa
                                   _ATTACH_WIDTHS * w, max_gap_widths * w)
             if new is None:
                 continue
-            curves[a] = new
+            curves[a], per_curve[a] = new, _curve_samples(new)
             if a != b:
                 counts[a] += counts[b]
                 dropped.add(b)
             used |= {a, b}
         if not used:
             break
-        curves = [c for k, c in enumerate(curves) if k not in dropped]
-        counts = [n for k, n in enumerate(counts) if k not in dropped]
+        kept = [k for k in range(len(curves)) if k not in dropped]
+        touched = np.flatnonzero(np.isin(kept, sorted(used)))
+        curves = [curves[k] for k in kept]
+        per_curve = [per_curve[k] for k in kept]
+        counts = [counts[k] for k in kept]
     return curves

@@ -134,13 +134,38 @@ def test_near_pairs_are_all_pairs_within_the_radius():
     assert got == want and len(i) == len(got)
 
 
+def test_near_pairs_found_chunk_by_chunk_and_filtered_are_those_of_one_pass():
+    rng = np.random.default_rng(5)
+    pts = np.round(rng.uniform(0, 60, (900, 2)) * 2) / 2             # half pixels: equal distances
+    i, j = _near_pairs(pts, 3.0)
+    def keep(a, b, d):
+        return (a + b) % 3 > 0
+
+    for chunk in (1, 7, 100, 10_000):
+        ci, cj = _near_pairs(pts, 3.0, keep, chunk)
+        mine = (i + j) % 3 > 0
+        np.testing.assert_array_equal(ci, i[mine]), np.testing.assert_array_equal(cj, j[mine])
+
+
+def test_points_near_are_all_points_within_each_query_radius():
+    from stages.export.end_index import points_near
+
+    rng = np.random.default_rng(4)
+    pts, qs = rng.uniform(-20, 40, (700, 2)), rng.uniform(-25, 45, (90, 2))
+    r = rng.uniform(0.5, 9.0, len(qs))
+    q, p = points_near(pts, qs, r, 2.0)
+    d = (pts[None] - qs[:, None])
+    want = set(zip(*np.nonzero(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] <= (r * r)[:, None])))
+    assert set(zip(q.tolist(), p.tolist())) == want and len(q) == len(want) and np.all(np.diff(q) >= 0)
+
+
 def test_merging_is_near_linear_in_the_ink(monkeypatch):
     # Many short parallel pairs over a page: the pairs searched grow with the ink, not its square.
     import stages.export.passes as passes
 
     seen = []
     real = passes._near_pairs
-    monkeypatch.setattr(passes, "_near_pairs", lambda p, r: seen.append(len(real(p, r)[0])) or real(p, r))
+    monkeypatch.setattr(passes, "_near_pairs", lambda p, r, *a: seen.append(len(real(p, r, *a)[0])) or real(p, r, *a))
 
     def page(n):   # 4 rows of n pairs of passes
         return [_curve(k, _line(10 + 130 * c, 120 + 130 * c, 10 + 40 * r + 3 * (k % 2)))
@@ -211,3 +236,86 @@ def test_a_generated_stroke_drawn_twice_between_two_points_is_one_open_curve():
     assert len(curves) == 1                              # before: the two passes joined into a loop
     ends = sorted(map(tuple, np.round(curves[0][[0, -1]])))
     assert ends == [(14.0, 40.0), (110.0, 44.0)]
+
+
+def _merged_by_full_rounds(curves):
+    """``merge_passes`` as first built: every round looks at all pairs of all curves (the reference)."""
+    from stages.export import passes as ps
+
+    curves = [dict(c, points=np.asarray(c["points"], np.float64)) for c in curves]
+    counts = [1] * len(curves)
+    for _ in range(8):
+        known = [c["width"] for c in curves if c.get("width")]
+        fallback = float(np.median(known)) if known else ps._DEFAULT_WIDTH_PX
+        widths = np.array([float(c["width"]) if c.get("width") else fallback for c in curves])
+        Pt, T, owner, arc, offsets, W = ps._samples([ps._curve_samples(c) for c in curves], widths)
+        i, j = ps._partners(Pt, T, owner, arc, W, P["max_gap_widths"], P["max_angle_deg"])
+        used, dropped = set(), set()
+        for _, a, b, ia, jb in ps._runs(i, j, owner, arc, W, P["min_run_widths"]):
+            if a in used or b in used:
+                continue
+            w, q, slack = float(0.5 * (widths[a] + widths[b])), arc[jb], P["end_slack_widths"] * 0.5 * (widths[a] + widths[b])
+            if a == b:
+                if q[0] < arc[ia[0]]:
+                    continue
+                new = ps._fold(curves[a], Pt[ia], arc[ia], q, slack, 3.0 * P["max_gap_widths"] * w, w)
+            else:
+                lo, hi = offsets[b], offsets[b + 1]
+                new = ps._merge_pair(curves[a], curves[b], Pt[ia], arc[ia], float(arc[offsets[a + 1] - 1]),
+                                     Pt[lo:hi], arc[lo:hi], q, counts[a], counts[b], w, slack,
+                                     ps._ATTACH_WIDTHS * w, P["max_gap_widths"] * w)
+            if new is None:
+                continue
+            curves[a] = new
+            if a != b:
+                counts[a] += counts[b]
+                dropped.add(b)
+            used |= {a, b}
+        if not used:
+            break
+        curves = [c for k, c in enumerate(curves) if k not in dropped]
+        counts = [n for k, n in enumerate(counts) if k not in dropped]
+    return curves
+
+
+def _bundles(rng, n):
+    """``n`` bundles of 1–4 passes of a line, on whole or half pixels (ties of distance), widths 1.5–3 px or none."""
+    curves = []
+    for b in range(n):
+        x0, y0 = rng.integers(0, 4) * 60, rng.integers(0, 4) * 40
+        for k in range(rng.integers(1, 5)):
+            shift = np.round(rng.uniform(-1, 4) * 2) / 2
+            x = np.arange(x0 + 5 + rng.integers(0, 4), x0 + 55 - rng.integers(0, 4), 1.0)
+            y = np.full(len(x), y0 + 10 + shift) + (x - x0) * rng.choice([0.0, 0.5])
+            pts = np.c_[x, y][::rng.choice([1, -1])]
+            curves.append(_curve(len(curves), pts, width=rng.choice([None, 1.5, 2.0, 3.0])))
+    return curves
+
+
+def test_rounds_on_the_changed_curves_merge_as_full_rounds():
+    # Later rounds look only at the curves that changed and their neighbours; the merges are those of
+    # rounds over every pair (random bundles of passes, coordinates on half pixels: equal distances).
+    rng = np.random.default_rng(7)
+    for _ in range(30):
+        curves = _bundles(rng, int(rng.integers(1, 8)))
+        got, want = _merge(curves), _merged_by_full_rounds(curves)
+        assert [c["parts"] for c in got] == [c["parts"] for c in want]
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g["points"], w["points"])
+            assert (g["end_types"], g["end_keypoints"], g.get("corners")) == (w["end_types"], w["end_keypoints"],
+                                                                          w.get("corners"))
+
+
+def test_later_rounds_look_only_near_the_changed_curves(monkeypatch):
+    # A page of single lines (nothing to merge) and one line drawn three times (two passes merged in
+    # the first round, the third in the second): later rounds look at that line's samples, not the page's.
+    from stages.export import passes
+
+    seen = []
+    real = passes._partners
+    monkeypatch.setattr(passes, "_partners", lambda p, *a: seen.append(len(p)) or real(p, *a))
+    page = [_curve(k, _line(10 + 130 * (k % 8), 120 + 130 * (k % 8), 10 + 20 * (k // 8))) for k in range(64)]
+    triple = [_curve(100 + m, _line(10, 120, 190 + 2 * m)) for m in (0, 1, 2)]
+    out = _merge(page + triple)
+    assert len(out) == 65 and len(seen) >= 2
+    assert seen[0] == 67 * 111 and sum(seen[1:]) <= 4 * 111    # before: all 7,437 samples every round
