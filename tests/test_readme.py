@@ -189,7 +189,7 @@ def test_the_resume_commands_pick_up_after_ctrl_c(tmp_path, cli):
                             cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 300
-        while not _manifests(store, "field") and proc.poll() is None and time.monotonic() < deadline:
+        while not _manifests(store, "prep") and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert proc.poll() is None, "the run ended before it could be interrupted"
         proc.send_signal(signal.SIGINT)
