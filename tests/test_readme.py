@@ -185,11 +185,14 @@ def test_the_resume_commands_pick_up_after_ctrl_c(tmp_path, cli):
     first, again = (shlex.split(_command(line)) for line in _lines("Resuming"))
     assert first == again and first[0] == "polyvec"
     store = tmp_path / "artifacts"
+    # SIGINT back to its default in the run: a suite started from a background or non-interactive shell
+    # passes SIGINT down ignored, and Python then installs no handler (the Ctrl-C a terminal sends is not)
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.launch", *first[1:], "runtime.cluster=sync"],
-                            cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 300
-        while not _manifests(store, "prep") and proc.poll() is None and time.monotonic() < deadline:
+        while not _manifests(store, "field") and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert proc.poll() is None, "the run ended before it could be interrupted"
         proc.send_signal(signal.SIGINT)
