@@ -138,6 +138,14 @@ class _EndIndex:
         return [o for o in self.synthetic_near(p) if self.state[o][1] < 0]
 
 
+def _in_cells(order: np.ndarray, skey: np.ndarray, look: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points in each of the cells ``look``: (how many in each, their indices cell after cell), from
+    the points' cell keys sorted (``skey``) and the sorting order (``order``)."""
+    lo, hi = np.searchsorted(skey, look, "left"), np.searchsorted(skey, look, "right")
+    n = hi - lo
+    return n, order[np.repeat(lo, n) + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)]
+
+
 def points_near(P: np.ndarray, Q: np.ndarray, r: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (q, p) of a query point ``Q[q]`` and a point ``P[p]`` within its own radius ``r[q]``.
 
@@ -175,13 +183,10 @@ def points_near(P: np.ndarray, Q: np.ndarray, r: np.ndarray, cell: float) -> tup
         sel = np.flatnonzero(reach == k)
         step = np.arange(-k, k + 1)
         look = ((cq[sel, 0] * span + cq[sel, 1])[:, None] + (step[:, None] * span + step).ravel()).ravel()
-        lo, hi = np.searchsorted(skey, look, "left"), np.searchsorted(skey, look, "right")
-        n = hi - lo
-        total = int(n.sum())
-        if not total:
+        n, p = _in_cells(order, skey, look)
+        if not len(p):
             continue
         q = np.repeat(np.repeat(sel, (2 * k + 1) ** 2), n)
-        p = order[np.repeat(lo, n) + np.arange(total) - np.repeat(np.cumsum(n) - n, n)]
         d = P[p] - Q[q]
         ok = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r[q] * r[q]
         out_q.append(q[ok]), out_p.append(p[ok])
@@ -235,14 +240,10 @@ def near_pairs(P: np.ndarray, r: float, keep=None, chunk: int = NEAR_PAIRS_CHUNK
     for s0 in range(0, len(P), max(int(chunk), 1)):
         ckey = key[s0:s0 + chunk]
         for o, (dx, dy) in enumerate(((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))):
-            lo = np.searchsorted(skey, ckey + dx * span + dy, "left")
-            hi = np.searchsorted(skey, ckey + dx * span + dy, "right")
-            n = hi - lo
-            total = int(n.sum())
-            if not total:
+            n, dst = _in_cells(order, skey, ckey + dx * span + dy)
+            if not len(dst):
                 continue
             src = s0 + np.repeat(np.arange(len(ckey)), n)
-            dst = order[np.repeat(lo, n) + np.arange(total) - np.repeat(np.cumsum(n) - n, n)]
             if (dx, dy) == (0, 0):
                 src, dst = src[src < dst], dst[src < dst]
             d = np.hypot(*(P[src] - P[dst]).T)

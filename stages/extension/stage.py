@@ -32,14 +32,7 @@ from stages.artifact import Artifact
 from stages.config import from_section
 from stages.errors import InputError
 from stages.extension import ExtensionConfig
-from stages.field.solver import (
-    _as_real,
-    _band_differences,
-    _blockwise_cg,
-    _region_index,
-    _solve_blocks,
-    _weighted_laplacian,
-)
+from stages.field.solver import _as_real, _blockwise_cg, _smart_laplacian, _solve_blocks
 
 
 def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray,
@@ -81,11 +74,8 @@ def extend_field(c0: np.ndarray, c2: np.ndarray, mask: np.ndarray, s: np.ndarray
     dil = ndi.binary_dilation(mask, structure=disk)
     ring = dil & ~mask
     in_ring = ring[dil]
-    # _smart_laplacian's L, its pixel index freed before the product and its weights taken on the
-    # region only (not a float64 page); only the ring's rows are kept (the band's are never read)
-    differences = _band_differences(dil, _region_index(dil))
-    lap_ring = _weighted_laplacian(differences, s[dil].astype(np.float64))[in_ring]
-    del differences
+    # only the ring's rows of L are kept (the band's are never read)
+    lap_ring = _smart_laplacian(dil, s)[in_ring]
     lrr = lap_ring[:, in_ring]
     rhs = -(lap_ring[:, ~in_ring] @ _as_real(np.stack([c0[mask], c2[mask]], axis=1).astype(np.complex128)))
     del lap_ring

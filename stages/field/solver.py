@@ -78,9 +78,14 @@ def _weighted_laplacian(differences, s_band: np.ndarray) -> sp.csr_matrix:
     return lap.tocsr()
 
 
-def _smart_laplacian(region: np.ndarray, index: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
-    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD); ``s`` (H, W)."""
-    return _weighted_laplacian(_band_differences(region, index), s[region])
+def _smart_laplacian(region: np.ndarray, s: np.ndarray) -> sp.csr_matrix:
+    """``L = Σ_dir Dᵀ diag(s) D`` over the pixels of ``region`` (real symmetric PSD); ``s`` (H, W).
+
+    The pixel index and the difference operators are gone before the product is returned, and the
+    weights are taken (as float64) on the region only: the extension builds it over a page's dilated band.
+    """
+    return _weighted_laplacian(_band_differences(region, _region_index(region)),
+                               np.asarray(s[region], np.float64))
 
 
 def _region_index(region: np.ndarray) -> np.ndarray:

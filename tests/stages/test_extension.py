@@ -54,7 +54,7 @@ def test_the_ring_is_the_smart_weighted_harmonic_extension_of_the_band():
     band held: the same solve as a direct sparse factorisation."""
     from scipy.sparse.linalg import spsolve
 
-    from stages.field.solver import _region_index, _smart_laplacian
+    from stages.field.solver import _smart_laplacian
 
     d = synthetic.vee(size=48, width=3)
     ins = _inputs(d.grey)
@@ -68,7 +68,7 @@ def test_the_ring_is_the_smart_weighted_harmonic_extension_of_the_band():
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     dil = ndi.binary_dilation(mask, structure=xx * xx + yy * yy <= r * r)
     ring = dil & ~mask
-    lap = _smart_laplacian(dil, _region_index(dil), np.asarray(f["smart_weights"], np.float64))
+    lap = _smart_laplacian(dil, np.asarray(f["smart_weights"], np.float64))
     in_ring = ring[dil]
     direct = spsolve(lap[in_ring][:, in_ring].tocsc(),
                      -(lap[in_ring][:, ~in_ring] @ np.asarray(f["c0"][mask], np.complex128)))

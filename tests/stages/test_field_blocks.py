@@ -33,7 +33,7 @@ def test_blocks_are_independent_and_cover_the_unknowns():
     blocks = solver._solve_blocks(mask, mask, limit=1)
     assert len(blocks) >= 2 and np.array_equal(np.sort(np.concatenate(blocks)), np.arange(n))
     assert all(np.all(np.diff(b) > 0) for b in blocks)  # raster order within a block
-    k = solver._smart_laplacian(mask, solver._region_index(mask), np.ones(mask.shape))
+    k = solver._smart_laplacian(mask, np.ones(mask.shape))
     block_of = np.empty(n, int)
     for i, b in enumerate(blocks):
         block_of[b] = i
